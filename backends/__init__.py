@@ -1,0 +1,1 @@
+"""Simulator backends (one module per engine) behind comexp.simulator.Simulator."""

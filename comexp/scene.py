@@ -1,0 +1,274 @@
+"""Engine-independent scene descriptions: plain dataclasses that both backends read.
+
+Units are SI (metres, kilograms, seconds, radians) inside the simulator interface; the
+experiment layer speaks centimetres and degrees and converts at its edge.
+
+Frames (written down once, in docs/method.md, and tested):
+- World: z up, the floor's top surface is z = 0, its centre is the origin; the floor is
+  `size_m` x `size_m`, its edges parallel to world x and y. mu_x acts along world x, mu_y
+  along world y.
+- Object frame: origin at the footprint polygon's area centroid, x/y the axes of the object's
+  config file, z up from the floor. The body's pose is the pose of this frame; the CoM is a
+  point given in it. Yaw is counter-clockwise about +z (positive = CCW seen from above).
+- Camera: pinhole at (x0, y0, height_m) looking straight down. Image column u grows with
+  world +x, image row v grows with world -y (rows grow downward, the top of the image is +y).
+  Pixel (u, v) has its centre at integer coordinates (OpenCV convention).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+GRAVITY_M_S2 = 9.81
+
+Point2 = tuple[float, float]
+Polygon2 = tuple[Point2, ...]
+
+
+@dataclass(frozen=True)
+class FloorSpec:
+    """Square floor; Coulomb friction against the object is exactly mu_x / mu_y along world x / y."""
+
+    mu_x: float
+    mu_y: float
+    size_m: float = 0.6
+    thickness_m: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.mu_x < 0 or self.mu_y < 0:
+            raise ValueError(f"floor friction must be >= 0, got ({self.mu_x}, {self.mu_y})")
+        if self.size_m <= 0:
+            raise ValueError(f"floor size must be > 0, got {self.size_m}")
+
+    @property
+    def isotropic(self) -> bool:
+        return self.mu_x == self.mu_y
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """An extruded polygon ("prism") standing on the floor.
+
+    `outline_m` is the footprint (counter-clockwise, object frame, origin at its area
+    centroid). `convex_parts_m` are counter-clockwise convex polygons whose union is the
+    outline: engines collide with convex shapes only. Inertia is about the CoM, in axes parallel
+    to the object frame (off-diagonal terms are neglected: only planar motion matters).
+    """
+
+    name: str
+    outline_m: Polygon2
+    convex_parts_m: tuple[Polygon2, ...]
+    height_m: float
+    com_m: Point2
+    mass_kg: float
+    ixx_kg_m2: float
+    iyy_kg_m2: float
+    izz_kg_m2: float
+    mu_pusher: float
+
+    def __post_init__(self) -> None:
+        if self.mass_kg <= 0 or self.height_m <= 0:
+            raise ValueError(f"{self.name}: mass and height must be > 0")
+        if min(self.ixx_kg_m2, self.iyy_kg_m2, self.izz_kg_m2) <= 0:
+            raise ValueError(f"{self.name}: inertia must be > 0")
+        a, b, c = self.ixx_kg_m2, self.iyy_kg_m2, self.izz_kg_m2
+        tol = 1e-12
+        if a + b < c - tol or a + c < b - tol or b + c < a - tol:
+            raise ValueError(f"{self.name}: inertia violates the triangle inequality")
+        if self.mu_pusher < 0:
+            raise ValueError(f"{self.name}: pusher friction must be >= 0")
+        if not self.convex_parts_m:
+            raise ValueError(f"{self.name}: needs at least one convex part")
+
+
+@dataclass(frozen=True)
+class PusherSpec:
+    """A vertical cylinder, position-controlled in the horizontal plane.
+
+    Its bottom is `clearance_m` above the floor (it never touches the floor), so the only
+    contact it makes is with the object's side.
+    """
+
+    radius_m: float = 0.005
+    length_m: float = 0.06
+    clearance_m: float = 0.002
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """Top-down depth camera centred over the floor; `view_m` is the width seen at floor level."""
+
+    width_px: int = 224
+    height_px: int = 224
+    height_m: float = 1.0
+    view_m: float = 0.62
+    near_m: float = 0.5
+    far_m: float = 1.5
+
+    @property
+    def fov_deg(self) -> float:
+        """Full field of view (both axes; square image)."""
+        return math.degrees(2.0 * math.atan(0.5 * self.view_m / self.height_m))
+
+    def model(self) -> CameraModel:
+        f = 0.5 * self.width_px / math.tan(math.radians(self.fov_deg) / 2.0)
+        return CameraModel(
+            width_px=self.width_px,
+            height_px=self.height_px,
+            fx_px=f,
+            fy_px=f,
+            cx_px=(self.width_px - 1) / 2.0,
+            cy_px=(self.height_px - 1) / 2.0,
+            position_m=(0.0, 0.0, self.height_m),
+        )
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole model of the top-down camera: maps pixels (+ metric depth) to world points.
+
+    depth is the distance along the optical axis (-z), so a world point at height z has
+    depth = position_m[2] - z.
+    """
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    position_m: tuple[float, float, float]
+
+    def pixel_to_world(self, u: np.ndarray, v: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+        """(u, v, depth) -> world (x, y, z), arrays broadcast; returns shape (..., 3)."""
+        u = np.asarray(u, dtype=float)
+        v = np.asarray(v, dtype=float)
+        depth = np.asarray(depth_m, dtype=float)
+        x0, y0, z0 = self.position_m
+        x = x0 + (u - self.cx_px) * depth / self.fx_px
+        y = y0 - (v - self.cy_px) * depth / self.fy_px
+        return np.stack(np.broadcast_arrays(x, y, z0 - depth), axis=-1)
+
+    def world_to_pixel(self, x: np.ndarray, y: np.ndarray, z: np.ndarray | float = 0.0) -> np.ndarray:
+        """World (x, y, z) -> continuous pixel (u, v); returns shape (..., 2)."""
+        x0, y0, z0 = self.position_m
+        depth = z0 - np.asarray(z, dtype=float)
+        u = self.cx_px + (np.asarray(x, dtype=float) - x0) * self.fx_px / depth
+        v = self.cy_px - (np.asarray(y, dtype=float) - y0) * self.fy_px / depth
+        return np.stack(np.broadcast_arrays(u, v), axis=-1)
+
+    def pixel_size_m(self, depth_m: float) -> float:
+        """Edge length of one pixel on a plane at this depth."""
+        return depth_m / self.fx_px
+
+
+@dataclass(frozen=True)
+class DepthImage:
+    """Metric depth (metres along the optical axis), rows grow downward, plus its camera model."""
+
+    depth_m: np.ndarray
+    camera: CameraModel
+
+
+@dataclass(frozen=True)
+class Pose2D:
+    """Planar pose of the object frame in the world: position (m) and CCW yaw (rad)."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float = 0.0
+
+    def to_world(self, p: np.ndarray) -> np.ndarray:
+        """Object-frame points (..., 2) -> world (..., 2)."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        p = np.asarray(p, dtype=float)
+        return np.stack(
+            [self.x_m + c * p[..., 0] - s * p[..., 1], self.y_m + s * p[..., 0] + c * p[..., 1]],
+            axis=-1,
+        )
+
+    def to_object(self, p: np.ndarray) -> np.ndarray:
+        """World points (..., 2) -> object frame (..., 2)."""
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        p = np.asarray(p, dtype=float)
+        dx, dy = p[..., 0] - self.x_m, p[..., 1] - self.y_m
+        return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
+
+
+@dataclass(frozen=True)
+class ObjectState:
+    """Full rigid-body state of the object frame, for evaluation, tests and failure checks."""
+
+    position_m: tuple[float, float, float]
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    linear_velocity_m_s: tuple[float, float, float]
+    angular_velocity_rad_s: tuple[float, float, float]
+
+    @property
+    def pose(self) -> Pose2D:
+        return Pose2D(self.position_m[0], self.position_m[1], self.yaw_rad)
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle between the object's z axis and world z."""
+        c = math.cos(self.roll_rad) * math.cos(self.pitch_rad)
+        return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+    @property
+    def is_finite(self) -> bool:
+        vals = (
+            *self.position_m,
+            self.roll_rad,
+            self.pitch_rad,
+            self.yaw_rad,
+            *self.linear_velocity_m_s,
+            *self.angular_velocity_rad_s,
+        )
+        return all(math.isfinite(v) for v in vals)
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    floor: FloorSpec
+    obj: ObjectSpec
+    pusher: PusherSpec = field(default_factory=PusherSpec)
+    camera: CameraSpec = field(default_factory=CameraSpec)
+    initial_pose: Pose2D = field(default_factory=lambda: Pose2D(0.0, 0.0, 0.0))
+
+
+@dataclass(frozen=True)
+class PushCommand:
+    """A straight push: the pusher's axis starts at `start_xy_m` (world; must be clear of the
+    object), moves along the unit vector `direction_xy` for `travel_m` at `speed_m_s`, stops,
+    and the object is left to come to rest."""
+
+    start_xy_m: Point2
+    direction_xy: Point2
+    travel_m: float
+    speed_m_s: float
+
+    def __post_init__(self) -> None:
+        if not self.speed_m_s > 0:
+            raise ValueError(f"push speed must be > 0, got {self.speed_m_s}")
+        if not self.travel_m > 0:
+            raise ValueError(f"push travel must be > 0, got {self.travel_m}")
+        n = math.hypot(*self.direction_xy)
+        if abs(n - 1.0) > 1e-6:
+            raise ValueError(f"push direction must be a unit vector, |d| = {n}")
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Engine-independent stepping, settle and failure settings."""
+
+    timestep_s: float = 0.001
+    settle_speed_m_s: float = 2e-3
+    settle_spin_rad_s: float = 0.02
+    settle_hold_s: float = 0.05
+    max_settle_s: float = 5.0
+    tip_limit_deg: float = 15.0

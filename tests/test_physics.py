@@ -1,0 +1,188 @@
+"""Both backends validated against physics (the contract of the simulator interface).
+
+Sliding deceleration = mu * g per floor axis; a push through the CoM does not rotate; an
+offset push rotates the way the torque says; the camera maps a known pose to the right pixels
+with metric depth; runs are bit-identical; failures are reported, not hidden.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from comexp.geometry import box_object
+from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PushCommand, SceneSpec
+from comexp.simulator import PushStatus, contact_push, make_simulator
+
+BACKENDS = ["pybullet", "mujoco"]
+PUSH_LENGTH_M = 0.03
+
+
+@pytest.fixture(params=BACKENDS, scope="module")
+def sim(request):
+    s = make_simulator(request.param)
+    yield s
+    s.close()
+
+
+def _box(com=(0.0, 0.0), mu_pusher=0.5, izz_scale=1.0, size=(0.08, 0.05, 0.03)):
+    return box_object(*size, com_m=com, mu_pusher=mu_pusher, izz_scale=izz_scale)
+
+
+def _measure_deceleration(sim, axis: int, v0: float) -> float:
+    """Slide along a world axis from v0 and fit the velocity decay while clearly sliding."""
+    lin = [0.0, 0.0, 0.0]
+    lin[axis] = v0
+    sim.set_object_velocity(tuple(lin), (0.0, 0.0, 0.0))
+    dt = 0.002
+    ts, vs = [], []
+    t = 0.0
+    for _ in range(2000):
+        sim.step(dt)
+        t += dt
+        v = sim.object_state().linear_velocity_m_s[axis]
+        if v < 0.2 * v0:
+            break
+        ts.append(t)
+        vs.append(v)
+    ts, vs = np.array(ts), np.array(vs)
+    keep = ts > 0.01  # skip the first contact transient
+    slope = np.polyfit(ts[keep], vs[keep], 1)[0]
+    return -float(slope)
+
+
+@pytest.mark.parametrize(
+    "mu_x,mu_y", [(0.1, 0.1), (1.0, 1.0), (0.1, 1.0), (1.0, 0.1)], ids=["iso0.1", "iso1", "aniso_x0.1", "aniso_x1"]
+)
+@pytest.mark.parametrize("axis", [0, 1], ids=["x", "y"])
+def test_sliding_deceleration_is_mu_g(sim, mu_x, mu_y, axis):
+    mu = (mu_x, mu_y)[axis]
+    sim.build(SceneSpec(FloorSpec(mu_x, mu_y), _box()))
+    sim.step(0.05)  # settle onto the floor
+    v0 = 0.6 if mu >= 1.0 else 0.3
+    decel = _measure_deceleration(sim, axis, v0)
+    expected = mu * GRAVITY_M_S2
+    assert decel == pytest.approx(expected, rel=0.05), f"{sim.name}: decel {decel:.3f} vs {expected:.3f}"
+    state = sim.object_state()
+    other = 1 - axis
+    assert abs(state.position_m[other]) < 1e-3, "a slide along one floor axis must not veer"
+    assert state.tilt_deg < 1.0
+
+
+def _push_left_face(sim, scene: SceneSpec, y_contact: float, speed: float):
+    """Push the box's -x face at height y (world) along +x; returns the outcome."""
+    half_len = max(p[0] for p in scene.obj.outline_m)
+    contact = (scene.initial_pose.x_m - half_len, scene.initial_pose.y_m + y_contact)
+    cmd = contact_push(contact, (1.0, 0.0), PUSH_LENGTH_M, speed, scene.pusher.radius_m)
+    return sim.push(cmd)
+
+
+@pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
+@pytest.mark.parametrize("mu_floor", [0.1, 1.0])
+def test_push_through_com_does_not_rotate(sim, speed, mu_floor):
+    com = (0.015, 0.01)
+    scene = SceneSpec(FloorSpec(mu_floor, mu_floor), _box(com=com, mu_pusher=1.0))
+    sim.build(scene)
+    out = _push_left_face(sim, scene, com[1], speed)
+    assert out.status is PushStatus.OK, out
+    assert out.contact_made
+    moved = math.hypot(out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m)
+    assert moved > 0.02, "the push must move the object"
+    assert abs(out.rotation_deg) < 0.5, f"{sim.name}: rotated {out.rotation_deg:.3f} deg"
+    assert out.max_tilt_deg < 5.0
+
+
+@pytest.mark.parametrize("mu_floor", [0.1, 1.0])
+def test_offset_push_rotates_with_the_torque(sim, mu_floor):
+    com = (0.0, 0.0)
+    rotations = {}
+    for speed in (0.4, 0.04):
+        for offset in (+0.015, -0.015):
+            scene = SceneSpec(FloorSpec(mu_floor, mu_floor), _box(com=com))
+            sim.build(scene)
+            out = _push_left_face(sim, scene, offset, speed)
+            assert out.status is PushStatus.OK, out
+            rotations[(speed, offset)] = out.rotation_deg
+    for (speed, offset), rot in rotations.items():
+        # force +x applied at y = offset above the CoM: torque_z = -offset * F
+        expected_sign = -math.copysign(1.0, offset)
+        assert rot * expected_sign > 1.0, f"{sim.name}: speed {speed} offset {offset}: {rot:.2f} deg"
+    if mu_floor == 1.0:
+        for offset in (+0.015, -0.015):
+            assert abs(rotations[(0.4, offset)]) > abs(rotations[(0.04, offset)])
+
+
+def test_pusher_tracks_commanded_path(sim):
+    scene = SceneSpec(FloorSpec(0.5, 0.5), _box())
+    sim.build(scene)
+    for speed in (0.4, 0.04):
+        out = _push_left_face(sim, scene, 0.0, speed)
+        assert out.status is PushStatus.OK
+        assert out.max_pusher_lag_m <= speed * sim.settings.timestep_s * 1.05 + 1e-6
+
+
+def test_camera_maps_known_pose_to_pixels(sim):
+    pose = Pose2D(0.08, -0.11, math.radians(30))
+    obj = _box()
+    sim.build(SceneSpec(FloorSpec(0.5, 0.5), obj, initial_pose=pose))
+    img = sim.render_depth()
+    cam = img.camera
+    depth = img.depth_m
+    assert depth.shape == (224, 224)
+    floor_depth = cam.position_m[2]
+    # metric depth: floor and object top at their true distances
+    corner_floor = depth[112, 5]
+    assert corner_floor == pytest.approx(floor_depth, abs=2e-3)
+    mask = depth < floor_depth - 0.005
+    top = depth[mask].min()
+    assert top == pytest.approx(floor_depth - obj.height_m, abs=2e-3)
+    # the top face's pixels are centred where the model projects the object's centre
+    top_face = np.abs(depth - top) < 2e-3
+    v, u = np.nonzero(top_face)
+    expected = cam.world_to_pixel(pose.x_m, pose.y_m, obj.height_m)
+    assert abs(u.mean() - expected[0]) < 1.0 and abs(v.mean() - expected[1]) < 1.0
+    # sign conventions: +x is to the right of centre, +y is above centre (smaller row)
+    assert u.mean() > cam.cx_px and v.mean() > cam.cy_px
+    # area: top face pixels x pixel area ~ footprint area
+    px = cam.pixel_size_m(top)
+    area = top_face.sum() * px * px
+    assert area == pytest.approx(0.08 * 0.05, rel=0.06)
+
+
+def test_same_scene_and_push_are_bit_identical(sim):
+    def run():
+        scene = SceneSpec(FloorSpec(1.0, 0.1), _box(com=(0.01, -0.005)))
+        sim.build(scene)
+        out = _push_left_face(sim, scene, 0.012, 0.4)
+        return out, sim.render_depth().depth_m.copy()
+
+    a, da = run()
+    b, db = run()
+    assert a == b
+    assert np.array_equal(da, db)
+
+
+def test_tipping_is_reported(sim):
+    tall = box_object(0.02, 0.02, 0.12, mu_pusher=1.0)
+    scene = SceneSpec(FloorSpec(1.0, 1.0), tall)
+    sim.build(scene)
+    out = _push_left_face(sim, scene, 0.0, 0.4)
+    assert out.status is PushStatus.TIPPED
+
+
+def test_leaving_the_view_is_reported(sim):
+    scene = SceneSpec(FloorSpec(0.1, 0.1), _box(), initial_pose=Pose2D(0.24, 0.0, 0.0))
+    sim.build(scene)
+    out = _push_left_face(sim, scene, 0.0, 0.4)
+    assert out.status is PushStatus.LEFT_VIEW
+
+
+def test_start_overlapping_object_is_refused(sim):
+    scene = SceneSpec(FloorSpec(0.5, 0.5), _box())
+    sim.build(scene)
+    before = sim.true_pose()
+    out = sim.push(PushCommand((0.0, 0.0), (1.0, 0.0), 0.03, 0.4))
+    assert out.status is PushStatus.PATH_BLOCKED
+    assert sim.true_pose() == before

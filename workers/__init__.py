@@ -1,0 +1,1 @@
+"""Ray side: the worker actor that owns one simulator, and the pool."""
