@@ -55,7 +55,9 @@ class PushRecord:
 class EpisodeResult:
     spec: EpisodeSpec
     status: str  # ok | failed
-    failure: str | None  # tipped, left_view, no_valid_contact, sim_unstable, not_settled, timeout, error
+    failure: (
+        str | None
+    )  # tipped, left_view, no_valid_contact, sim_unstable, not_settled, timeout, error
     est_com_cm: tuple[float, float] | None
     error_cm: float | None
     n_pushes: int

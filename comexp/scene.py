@@ -152,7 +152,9 @@ class CameraModel:
         y = y0 - (v - self.cy_px) * depth / self.fy_px
         return np.stack(np.broadcast_arrays(x, y, z0 - depth), axis=-1)
 
-    def world_to_pixel(self, x: np.ndarray, y: np.ndarray, z: np.ndarray | float = 0.0) -> np.ndarray:
+    def world_to_pixel(
+        self, x: np.ndarray, y: np.ndarray, z: np.ndarray | float = 0.0
+    ) -> np.ndarray:
         """World (x, y, z) -> continuous pixel (u, v); returns shape (..., 2)."""
         x0, y0, z0 = self.position_m
         depth = z0 - np.asarray(z, dtype=float)

@@ -124,7 +124,9 @@ class Simulator(ABC):
 
     # --- test hooks: used by physics validation, never by the estimator ---------------------
     @abstractmethod
-    def set_object_velocity(self, linear_m_s: tuple[float, float, float], angular_rad_s: tuple[float, float, float]) -> None:
+    def set_object_velocity(
+        self, linear_m_s: tuple[float, float, float], angular_rad_s: tuple[float, float, float]
+    ) -> None:
         """Overwrite the object's velocity (world frame)."""
 
     @abstractmethod

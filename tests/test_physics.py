@@ -54,7 +54,9 @@ def _measure_deceleration(sim, axis: int, v0: float) -> float:
 
 
 @pytest.mark.parametrize(
-    "mu_x,mu_y", [(0.1, 0.1), (1.0, 1.0), (0.1, 1.0), (1.0, 0.1)], ids=["iso0.1", "iso1", "aniso_x0.1", "aniso_x1"]
+    "mu_x,mu_y",
+    [(0.1, 0.1), (1.0, 1.0), (0.1, 1.0), (1.0, 0.1)],
+    ids=["iso0.1", "iso1", "aniso_x0.1", "aniso_x1"],
 )
 @pytest.mark.parametrize("axis", [0, 1], ids=["x", "y"])
 def test_sliding_deceleration_is_mu_g(sim, mu_x, mu_y, axis):
@@ -64,7 +66,9 @@ def test_sliding_deceleration_is_mu_g(sim, mu_x, mu_y, axis):
     v0 = 0.6 if mu >= 1.0 else 0.3
     decel = _measure_deceleration(sim, axis, v0)
     expected = mu * GRAVITY_M_S2
-    assert decel == pytest.approx(expected, rel=0.05), f"{sim.name}: decel {decel:.3f} vs {expected:.3f}"
+    assert decel == pytest.approx(expected, rel=0.05), (
+        f"{sim.name}: decel {decel:.3f} vs {expected:.3f}"
+    )
     state = sim.object_state()
     other = 1 - axis
     assert abs(state.position_m[other]) < 1e-3, "a slide along one floor axis must not veer"
@@ -88,7 +92,9 @@ def test_push_through_com_does_not_rotate(sim, speed, mu_floor):
     out = _push_left_face(sim, scene, com[1], speed)
     assert out.status is PushStatus.OK, out
     assert out.contact_made
-    moved = math.hypot(out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m)
+    moved = math.hypot(
+        out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m
+    )
     assert moved > 0.02, "the push must move the object"
     assert abs(out.rotation_deg) < 0.5, f"{sim.name}: rotated {out.rotation_deg:.3f} deg"
     assert out.max_tilt_deg < 5.0
@@ -108,7 +114,9 @@ def test_offset_push_rotates_with_the_torque(sim, mu_floor):
     for (speed, offset), rot in rotations.items():
         # force +x applied at y = offset above the CoM: torque_z = -offset * F
         expected_sign = -math.copysign(1.0, offset)
-        assert rot * expected_sign > 1.0, f"{sim.name}: speed {speed} offset {offset}: {rot:.2f} deg"
+        assert rot * expected_sign > 1.0, (
+            f"{sim.name}: speed {speed} offset {offset}: {rot:.2f} deg"
+        )
     if mu_floor == 1.0:
         for offset in (+0.015, -0.015):
             assert abs(rotations[(0.4, offset)]) > abs(rotations[(0.04, offset)])
