@@ -30,7 +30,7 @@ Polygon2 = tuple[Point2, ...]
 
 @dataclass(frozen=True)
 class FloorSpec:
-    """Square floor; Coulomb friction against the object is exactly mu_x / mu_y along world x / y."""
+    """Square floor; Coulomb friction against the object is mu_x along world x, mu_y along y."""
 
     mu_x: float
     mu_y: float
