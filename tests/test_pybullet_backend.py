@@ -1,0 +1,111 @@
+"""pybullet-specific checks that the shared physics contract does not cover."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pybullet as pb
+import pytest
+
+from comexp.geometry import box_object, prism_object
+from comexp.scene import FloorSpec, Pose2D, PushCommand, SceneSpec
+from comexp.simulator import PushStatus, contact_push, make_simulator
+
+
+@pytest.fixture(scope="module")
+def sim():
+    s = make_simulator("pybullet")
+    yield s
+    s.close()
+
+
+def test_inertia_and_com_come_from_the_spec_not_the_shape(sim):
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.02, -0.01), izz_scale=10.0)
+    sim.build(SceneSpec(FloorSpec(0.5, 0.5), obj))
+    mass, _, inertia = pb.getDynamicsInfo(sim._object, -1, physicsClientId=sim._cid)[:3]
+    assert mass == pytest.approx(obj.mass_kg)
+    assert inertia == pytest.approx((obj.ixx_kg_m2, obj.iyy_kg_m2, obj.izz_kg_m2), rel=1e-6)
+    com_world, _ = pb.getBasePositionAndOrientation(sim._object, physicsClientId=sim._cid)
+    assert com_world[:2] == pytest.approx(obj.com_m, abs=1e-9)
+    assert sim.object_state().position_m[:2] == pytest.approx((0.0, 0.0), abs=1e-9)
+
+
+def test_object_rests_on_its_true_bottom(sim):
+    """No collision margin: after settling the object frame sits on z = 0 within 0.1 mm."""
+    sim.build(SceneSpec(FloorSpec(0.5, 0.5), box_object(0.06, 0.04, 0.02)))
+    sim.step(0.2)
+    st = sim.object_state()
+    assert abs(st.position_m[2]) < 1e-4
+    assert st.tilt_deg < 0.05
+
+
+def test_velocity_hook_is_for_the_object_frame(sim):
+    sim.build(SceneSpec(FloorSpec(0.0, 0.0), box_object(0.08, 0.05, 0.03, com_m=(0.02, 0.01))))
+    sim.set_object_velocity((0.1, -0.05, 0.0), (0.0, 0.0, 0.3))
+    st = sim.object_state()
+    assert st.linear_velocity_m_s[:2] == pytest.approx((0.1, -0.05), abs=1e-9)
+    assert st.angular_velocity_rad_s[2] == pytest.approx(0.3, abs=1e-9)
+
+
+def test_nonconvex_object_from_several_parts(sim):
+    """An L shape made of two boxes: one body, both parts visible and colliding."""
+    outline = [(0, 0), (0.08, 0), (0.08, 0.03), (0.03, 0.03), (0.03, 0.08), (0, 0.08)]
+    obj = prism_object("L", outline, 0.03, (0.0, 0.0))
+    parts = obj.convex_parts_m
+    if len(parts) < 2:
+        pytest.skip("convex decomposition of non-convex outlines not available yet")
+    sim.build(SceneSpec(FloorSpec(0.5, 0.5), obj))
+    sim.step(0.1)
+    assert sim.object_state().tilt_deg < 0.05
+    img = sim.render_depth()
+    top = np.abs(img.depth_m - (img.camera.position_m[2] - 0.03)) < 2e-3
+    px = img.camera.pixel_size_m(img.camera.position_m[2] - 0.03)
+    area = 0.08 * 0.03 + 0.03 * 0.05
+    assert top.sum() * px * px == pytest.approx(area, rel=0.08)
+
+
+def test_two_instances_coexist_and_agree():
+    scene = SceneSpec(FloorSpec(1.0, 0.1), box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005)))
+    cmd = contact_push((-0.04, 0.012), (1.0, 0.0), 0.03, 0.4, scene.pusher.radius_m)
+    a, b = make_simulator("pybullet"), make_simulator("pybullet")
+    try:
+        outs = []
+        for s in (a, b, a, b):
+            s.build(scene)
+            outs.append(s.push(cmd))
+        assert all(o == outs[0] for o in outs)
+        assert outs[0].ok and abs(outs[0].rotation_deg) > 1.0
+    finally:
+        a.close()
+        b.close()
+
+
+def test_pusher_is_parked_out_of_view_after_a_push(sim):
+    scene = SceneSpec(FloorSpec(0.5, 0.5), box_object(0.08, 0.05, 0.03))
+    sim.build(scene)
+    empty = sim.render_depth().depth_m.copy()
+    out = sim.push(contact_push((-0.04, 0.0), (1.0, 0.0), 0.03, 0.04, scene.pusher.radius_m))
+    assert out.ok and out.contact_made
+    xy = sim._pusher_xy()
+    uv = scene.camera.model().world_to_pixel(xy[0], xy[1], 0.1)
+    assert not (0 <= uv[0] < 224 and 0 <= uv[1] < 224)
+    # the image only changed where the object moved: nothing of the pusher is left in view
+    moved = np.abs(sim.render_depth().depth_m - empty) > 1e-3
+    assert moved.sum() > 0
+    v, u = np.nonzero(moved)
+    world = scene.camera.model().pixel_to_world(u, v, np.full(u.shape, 1.0))
+    assert np.all(np.abs(world[:, 1]) < 0.05)
+
+
+def test_blocked_start_leaves_the_scene_untouched(sim):
+    scene = SceneSpec(
+        FloorSpec(0.5, 0.5), box_object(0.08, 0.05, 0.03), initial_pose=Pose2D(0.05, 0.0, 0.3)
+    )
+    sim.build(scene)
+    before = sim.object_state()
+    # axis outside the footprint but within one radius of its edge: still overlaps
+    edge_x = 0.05 + 0.04 * math.cos(0.3)
+    out = sim.push(PushCommand((edge_x + 0.002, 0.0), (-1.0, 0.0), 0.03, 0.4))
+    assert out.status is PushStatus.PATH_BLOCKED and out.steps == 0
+    assert sim.object_state() == before
