@@ -1,0 +1,684 @@
+"""Results database: one row per episode, one per push, one per sweep (SQLAlchemy 2).
+
+SQLite in WAL mode is the embedded default; any SQLAlchemy URL (e.g. PostgreSQL) works too.
+Why the SQLite details matter:
+- the driver alone writes, in short ``BEGIN IMMEDIATE`` transactions with a long busy timeout,
+  so two writers (two sweeps on one file) queue instead of failing with "database is locked";
+- readers open the file with ``mode=ro`` (the query command must never change results), and WAL
+  lets them read while a sweep is writing;
+- every episode has a UNIQUE ``episode_key`` (a hash of its whole spec), and inserts use
+  ``ON CONFLICT DO NOTHING``, so a resumed or raced sweep never stores an episode twice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import numbers
+import os
+import random
+import sqlite3
+import time
+import urllib.parse
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Engine,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+    create_engine,
+    event,
+    func,
+    insert,
+    inspect,
+    select,
+    update,
+)
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+from comexp.episode import EpisodeResult, EpisodeSpec
+
+SCHEMA_VERSION = 1
+KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
+BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
+_IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
+_FLOAT_TOL = 1e-9  # condition filters compare stored floats with this tolerance
+
+
+# --------------------------------------------------------------------------- episode key
+def _canonical(value: Any) -> Any:
+    """JSON-ready form whose text does not depend on int-vs-float spelling or container type.
+
+    40 and 40.0 (Hydra may give either) both become 40; other floats keep Python's shortest
+    round-trip repr, which is stable across platforms; tuples become lists.
+    """
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        x = float(value)
+        if math.isfinite(x) and x.is_integer() and abs(x) < 2**53:
+            return int(x)
+        return x
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_canonical(v) for v in value]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _canonical(dataclasses.asdict(value))
+    if hasattr(value, "tolist"):  # numpy scalars and arrays
+        return _canonical(value.tolist())
+    raise TypeError(f"cannot build an episode key from a {type(value).__name__}: {value!r}")
+
+
+def canonical_json(value: Any) -> str:
+    """Sorted-key compact JSON of `_canonical(value)`."""
+    return json.dumps(_canonical(value), sort_keys=True, separators=(",", ":"), allow_nan=True)
+
+
+def episode_key(spec: EpisodeSpec) -> str:
+    """Identity of an episode: sha256 of every spec field, so fields added later count too."""
+    text = KEY_VERSION + ":" + canonical_json(spec)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# --------------------------------------------------------------------------- schema
+class Base(DeclarativeBase):
+    pass
+
+
+def _utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class Sweep(Base):
+    """One run of the driver (one Hydra job): what was asked and with which software."""
+
+    __tablename__ = "sweeps"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_utcnow)
+    command_line: Mapped[str] = mapped_column(Text, default="")
+    config: Mapped[str] = mapped_column(Text, default="")  # full resolved YAML
+    job_name: Mapped[str] = mapped_column(String(200), default="")
+    versions: Mapped[dict] = mapped_column(JSON, default=dict)
+    git_rev: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    host: Mapped[str] = mapped_column(String(200), default="")
+
+
+class Episode(Base):
+    """One CoM estimation. Column names are the public contract (design.md)."""
+
+    __tablename__ = "episodes"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    sweep_id: Mapped[int | None] = mapped_column(ForeignKey("sweeps.id"), nullable=True)
+    backend: Mapped[str] = mapped_column(String(32))
+    floor: Mapped[str] = mapped_column(String(32))
+    mu_floor_x: Mapped[float] = mapped_column(Float)
+    mu_floor_y: Mapped[float] = mapped_column(Float)
+    mu_pusher: Mapped[float] = mapped_column(Float)
+    speed_cm_s: Mapped[float] = mapped_column(Float)
+    izz_scale: Mapped[float] = mapped_column(Float)
+    object: Mapped[str] = mapped_column(String(100))
+    com_index: Mapped[int] = mapped_column(Integer)
+    true_com_x_cm: Mapped[float] = mapped_column(Float)
+    true_com_y_cm: Mapped[float] = mapped_column(Float)
+    est_com_x_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
+    est_com_y_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
+    error_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
+    n_pushes: Mapped[int] = mapped_column(Integer)
+    status: Mapped[str] = mapped_column(String(16))  # ok | failed
+    failure: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    wall_s: Mapped[float] = mapped_column(Float)
+    # Contract columns come first (in design.md order), so `SELECT *` reads like the brief.
+    episode_key: Mapped[str] = mapped_column(String(64), nullable=False)
+    sim_time_s: Mapped[float] = mapped_column(Float, default=0.0)
+    seed: Mapped[int] = mapped_column(Integer, default=0)
+    mass_kg: Mapped[float] = mapped_column(Float)
+    height_cm: Mapped[float] = mapped_column(Float)
+    push_length_cm: Mapped[float] = mapped_column(Float)
+    w1: Mapped[float | None] = mapped_column(Float, nullable=True)
+    w2: Mapped[float | None] = mapped_column(Float, nullable=True)
+    theta_T_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
+    C_bw_px: Mapped[float | None] = mapped_column(Float, nullable=True)
+    n_push: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    rotation_source: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    # The whole estimator settings and spec, canonical JSON: fields added later are kept, and
+    # `estimator` doubles as the grouping key for "same estimator variant" in the reports.
+    estimator: Mapped[str] = mapped_column(Text)
+    spec: Mapped[str] = mapped_column(Text)
+    detail: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_utcnow)
+
+    __table_args__ = (
+        UniqueConstraint("episode_key", name="uq_episodes_episode_key"),
+        Index(
+            "ix_episodes_condition",
+            "backend",
+            "floor",
+            "speed_cm_s",
+            "mu_floor_x",
+            "mu_floor_y",
+            "mu_pusher",
+        ),
+        Index("ix_episodes_object", "object", "com_index"),
+        Index("ix_episodes_status", "status", "failure"),
+        Index("ix_episodes_sweep", "sweep_id"),
+    )
+
+
+class Push(Base):
+    """One push of an episode; contact and direction in the object frame at push time."""
+
+    __tablename__ = "pushes"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    episode_id: Mapped[int] = mapped_column(ForeignKey("episodes.id", ondelete="CASCADE"))
+    k: Mapped[int] = mapped_column(Integer)
+    contact_x_cm: Mapped[float] = mapped_column(Float)
+    contact_y_cm: Mapped[float] = mapped_column(Float)
+    dir_x: Mapped[float] = mapped_column(Float)
+    dir_y: Mapped[float] = mapped_column(Float)
+    rotation_deg: Mapped[float] = mapped_column(Float)
+    rotation_true_deg: Mapped[float] = mapped_column(Float)
+    decision: Mapped[str] = mapped_column(String(16))  # ccw | cw | band
+    region_px: Mapped[int] = mapped_column(Integer)
+
+    __table_args__ = (UniqueConstraint("episode_id", "k", name="uq_pushes_episode_k"),)
+
+
+class Meta(Base):
+    """Schema version, so that a later layout can migrate or refuse old files clearly."""
+
+    __tablename__ = "comexp_meta"
+    key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    value: Mapped[str] = mapped_column(Text)
+
+
+EPISODES = Episode.__table__
+PUSHES = Push.__table__
+SWEEPS = Sweep.__table__
+META = Meta.__table__
+
+
+# --------------------------------------------------------------------------- filters
+@dataclass(frozen=True)
+class EpisodeFilter:
+    """Selection of episodes; None means "any". Floats match within 1e-9.
+
+    `mu_floor` selects isotropic floors with mu_x = mu_y = mu_floor; anisotropic floors are
+    selected by orientation with `mu_floor_x` / `mu_floor_y`.
+    """
+
+    backend: str | None = None
+    floor: str | None = None
+    speed_cm_s: float | None = None
+    mu_floor: float | None = None
+    mu_floor_x: float | None = None
+    mu_floor_y: float | None = None
+    mu_pusher: float | None = None
+    izz_scale: float | None = None
+    object: str | None = None
+    com_index: int | None = None
+    status: str | None = None
+    failure: str | None = None
+    sweep_id: int | None = None
+    rotation_source: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.status not in (None, "ok", "failed"):
+            raise ValueError(f"status must be ok or failed, not {self.status!r}")
+        for name in ("speed_cm_s", "mu_floor", "mu_floor_x", "mu_floor_y", "mu_pusher"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, not {v!r}")
+        if self.mu_floor is not None and (
+            self.mu_floor_x is not None or self.mu_floor_y is not None
+        ):
+            raise ValueError("give either mu_floor (isotropic) or mu_floor_x/mu_floor_y, not both")
+
+    def describe(self) -> str:
+        parts = [f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)]
+        return " ".join(p for p in parts if not p.endswith("=None")) or "(no filter)"
+
+    def clauses(self) -> list[Any]:
+        c = EPISODES.c
+        out: list[Any] = []
+
+        def near(col: Any, v: float) -> Any:
+            return col.between(v - _FLOAT_TOL, v + _FLOAT_TOL)
+
+        for name in ("backend", "floor", "object", "status", "failure", "rotation_source"):
+            v = getattr(self, name)
+            if v is not None:
+                out.append(c[name] == v)
+        for name in ("com_index", "sweep_id"):
+            v = getattr(self, name)
+            if v is not None:
+                out.append(c[name] == int(v))
+        for name in ("speed_cm_s", "mu_floor_x", "mu_floor_y", "mu_pusher", "izz_scale"):
+            v = getattr(self, name)
+            if v is not None:
+                out.append(near(c[name], float(v)))
+        if self.mu_floor is not None:
+            out += [near(c.mu_floor_x, self.mu_floor), near(c.mu_floor_y, self.mu_floor)]
+        return out
+
+
+# --------------------------------------------------------------------------- database
+def _is_url(target: str) -> bool:
+    return "://" in target
+
+
+def _sqlite_file(url: str | URL) -> Path | None:
+    u = make_url(url)
+    if u.get_backend_name() != "sqlite":
+        return None
+    db = u.database or ""
+    if db in ("", ":memory:") or db.startswith("file:"):
+        return None
+    return Path(db)
+
+
+class ResultsDB:
+    """Writable (driver) or read-only (queries) handle on the results database."""
+
+    def __init__(self, url_or_path: str | os.PathLike[str], *, readonly: bool = False) -> None:
+        target = os.fspath(url_or_path)
+        self.readonly = readonly
+        self.url: str | URL
+        if _is_url(target):
+            self.url = target
+            self.path = _sqlite_file(target)
+        else:
+            self.path = Path(target).expanduser()
+            # Built, not parsed: a file name may contain '?', '#' or '%'.
+            self.url = URL.create("sqlite+pysqlite", database=str(self.path))
+        self.where = (
+            str(self.path) if self.path is not None else make_url(self.url).render_as_string()
+        )
+        self.is_sqlite = make_url(self.url).get_backend_name() == "sqlite"
+        if readonly:
+            self.engine = self._open_readonly()
+        else:
+            self.engine = self._open_writable()
+
+    # ----------------------------------------------------------------- opening
+    def _open_writable(self) -> Engine:
+        try:
+            if self.path is not None:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            engine = create_engine(self.url)
+            if self.is_sqlite:
+                _install_sqlite_hooks(engine, begin="BEGIN IMMEDIATE", wal=True)
+            with engine.begin() as conn:  # serialised: two processes may create the schema
+                Base.metadata.create_all(conn)
+                version = conn.execute(select(META.c.value).where(META.c.key == "schema")).scalar()
+                if version is None:
+                    conn.execute(insert(META).values(key="schema", value=str(SCHEMA_VERSION)))
+                elif int(version) != SCHEMA_VERSION:
+                    raise ValueError(
+                        f"schema version {version}, this comexp writes {SCHEMA_VERSION}"
+                    )
+            return engine
+        except (OSError, SQLAlchemyError, ValueError) as exc:
+            raise ValueError(f"cannot write database at {self.where}: {_reason(exc)}") from exc
+
+    def _open_readonly(self) -> Engine:
+        if self.path is not None:
+            if not self.path.is_file():
+                raise ValueError(f"database not found: {self.path}")
+            engine = self._readonly_sqlite(immutable=False)
+            try:
+                self._check_schema(engine)
+            except OperationalError as exc:
+                # A WAL file cannot be opened read-only when its -shm index is missing and the
+                # directory is not writable. If no -wal file exists either, the main file holds
+                # everything (the last writer checkpointed), so reading it as immutable is safe.
+                engine.dispose()
+                wal = Path(str(self.path) + "-wal")
+                if wal.exists() or os.access(self.path.parent, os.W_OK):
+                    raise ValueError(f"cannot read database {self.path}: {_reason(exc)}") from exc
+                engine = self._readonly_sqlite(immutable=True)
+                try:
+                    self._check_schema(engine)
+                except OperationalError as exc2:
+                    raise ValueError(f"cannot read database {self.path}: {_reason(exc2)}") from exc2
+            return engine
+        engine = create_engine(self.url)
+        if self.is_sqlite:
+            _install_sqlite_hooks(engine, begin="BEGIN", wal=False, query_only=True)
+        try:
+            self._check_schema(engine)
+        except SQLAlchemyError as exc:
+            raise ValueError(f"cannot read database {self.where}: {_reason(exc)}") from exc
+        return engine
+
+    def _readonly_sqlite(self, *, immutable: bool) -> Engine:
+        assert self.path is not None
+        query = {"mode": "ro", "uri": "true"} | ({"immutable": "1"} if immutable else {})
+        uri_path = "file:" + urllib.parse.quote(self.path.resolve().as_posix())
+        engine = create_engine(URL.create("sqlite+pysqlite", database=uri_path, query=query))
+        _install_sqlite_hooks(engine, begin="BEGIN", wal=False, query_only=True)
+        return engine
+
+    def _check_schema(self, engine: Engine) -> None:
+        names = set(inspect(engine).get_table_names())
+        missing = {"episodes", "pushes", "sweeps"} - names
+        if missing:
+            raise ValueError(
+                f"{self.where} is not a comexp results database (missing tables: "
+                f"{', '.join(sorted(missing))})"
+            )
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def __enter__(self) -> ResultsDB:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------- writing
+    def check_writable(self) -> None:
+        """Fail early (before hours of simulation) if results could not be stored."""
+        if self.readonly:
+            raise ValueError(f"cannot write database at {self.where}: opened read-only")
+        try:
+            with self.engine.connect() as conn, conn.begin() as tx:
+                conn.execute(update(META).where(META.c.key == "schema").values(value=META.c.value))
+                tx.rollback()
+        except SQLAlchemyError as exc:
+            raise ValueError(f"cannot write database at {self.where}: {_reason(exc)}") from exc
+
+    def start_sweep(
+        self,
+        *,
+        command_line: str = "",
+        config_yaml: str = "",
+        job_name: str = "",
+        versions: dict[str, Any] | None = None,
+        git_rev: str | None = None,
+    ) -> int:
+        self._require_writable()
+        with self.engine.begin() as conn:
+            row = conn.execute(
+                insert(SWEEPS)
+                .values(
+                    started_at=_utcnow(),
+                    command_line=command_line,
+                    config=config_yaml,
+                    job_name=job_name,
+                    versions=dict(versions or {}),
+                    git_rev=git_rev,
+                    host=os.uname().nodename if hasattr(os, "uname") else "",
+                )
+                .returning(SWEEPS.c.id)
+            )
+            return int(row.scalar_one())
+
+    def stored_keys(self, keys: Iterable[str]) -> set[str]:
+        """The subset of `keys` already stored (the resume check)."""
+        wanted = list(dict.fromkeys(keys))
+        found: set[str] = set()
+        with self.engine.connect() as conn:
+            for i in range(0, len(wanted), _IN_CHUNK):
+                chunk = wanted[i : i + _IN_CHUNK]
+                q = select(EPISODES.c.episode_key).where(EPISODES.c.episode_key.in_(chunk))
+                found.update(conn.execute(q).scalars())
+        return found
+
+    def add_results(self, sweep_id: int | None, results: Sequence[EpisodeResult]) -> int:
+        """Store a batch in one transaction; returns how many were new (stored keys are skipped)."""
+        self._require_writable()
+        rows: dict[str, dict[str, Any]] = {}
+        pushes: dict[str, list[dict[str, Any]]] = {}
+        for r in results:
+            key = episode_key(r.spec)
+            if key not in rows:
+                rows[key] = _episode_row(sweep_id, key, r)
+                pushes[key] = [_push_row(p) for p in r.pushes]
+        if not rows:
+            return 0
+        with self.engine.begin() as conn:
+            ids = self._insert_new_episodes(conn, list(rows.values()))
+            push_rows = [
+                {"episode_id": ids[key], **p} for key in rows if key in ids for p in pushes[key]
+            ]
+            if push_rows:
+                conn.execute(insert(PUSHES), push_rows)
+        return len(ids)
+
+    def _insert_new_episodes(self, conn: Any, rows: list[dict[str, Any]]) -> dict[str, int]:
+        """Insert rows whose key is not stored yet; returns {key: new id}. Relies on UNIQUE."""
+        dialect = conn.dialect.name
+        if dialect in ("sqlite", "postgresql"):
+            if dialect == "sqlite":
+                from sqlalchemy.dialects.sqlite import insert as dialect_insert
+            else:
+                from sqlalchemy.dialects.postgresql import insert as dialect_insert
+            stmt = (
+                dialect_insert(EPISODES)
+                .on_conflict_do_nothing(index_elements=["episode_key"])
+                .returning(EPISODES.c.id, EPISODES.c.episode_key)
+            )
+            ids: dict[str, int] = {}
+            for i in range(0, len(rows), _IN_CHUNK):
+                result = conn.execute(stmt, rows[i : i + _IN_CHUNK])
+                ids.update({key: int(id_) for id_, key in result})
+            return ids
+        # Other databases: insert one by one inside a savepoint, skipping duplicates.
+        ids = {}
+        for row in rows:
+            try:
+                with conn.begin_nested():
+                    new_id = conn.execute(
+                        insert(EPISODES).values(**row).returning(EPISODES.c.id)
+                    ).scalar_one()
+                ids[row["episode_key"]] = int(new_id)
+            except IntegrityError:
+                continue
+        return ids
+
+    def _require_writable(self) -> None:
+        if self.readonly:
+            raise ValueError(f"cannot write database at {self.where}: opened read-only")
+
+    # ----------------------------------------------------------------- reading
+    def episodes(
+        self,
+        flt: EpisodeFilter | None = None,
+        *,
+        columns: Sequence[str] | None = None,
+        limit: int | None = None,
+        order_by_id: bool = True,
+    ) -> list[dict[str, Any]]:
+        """Episode rows as dicts (all columns unless `columns` names some), filtered."""
+        flt = flt or EpisodeFilter()
+        if columns is None:
+            cols = list(EPISODES.c)
+        else:
+            unknown = [c for c in columns if c not in EPISODES.c]
+            if unknown:
+                raise ValueError(f"unknown episode column(s): {', '.join(unknown)}")
+            cols = [EPISODES.c[c] for c in columns]
+        q = select(*cols).where(*flt.clauses())
+        if order_by_id:
+            q = q.order_by(EPISODES.c.id)
+        if limit is not None:
+            q = q.limit(limit)
+        with self.engine.connect() as conn:
+            return [dict(m) for m in conn.execute(q).mappings()]
+
+    def count(self, flt: EpisodeFilter | None = None) -> int:
+        flt = flt or EpisodeFilter()
+        q = select(func.count()).select_from(EPISODES).where(*flt.clauses())
+        with self.engine.connect() as conn:
+            return int(conn.execute(q).scalar_one())
+
+    def distinct(self, column: str) -> list[Any]:
+        """Stored values of one episode column (to tell a user what a filter could match)."""
+        if column not in EPISODES.c:
+            raise ValueError(f"unknown episode column: {column}")
+        col = EPISODES.c[column]
+        with self.engine.connect() as conn:
+            return list(conn.execute(select(col).distinct().order_by(col)).scalars())
+
+    def pushes(self, episode_id: int) -> list[dict[str, Any]]:
+        q = select(PUSHES).where(PUSHES.c.episode_id == episode_id).order_by(PUSHES.c.k)
+        with self.engine.connect() as conn:
+            return [dict(m) for m in conn.execute(q).mappings()]
+
+    def sweeps(self) -> list[dict[str, Any]]:
+        """Sweeps with their episode counts (ok / failed)."""
+        ok = func.sum((EPISODES.c.status == "ok").cast(Integer))
+        counts = (
+            select(
+                EPISODES.c.sweep_id,
+                func.count().label("n_episodes"),
+                ok.label("n_ok"),
+            )
+            .group_by(EPISODES.c.sweep_id)
+            .subquery()
+        )
+        q = (
+            select(SWEEPS, counts.c.n_episodes, counts.c.n_ok)
+            .outerjoin(counts, counts.c.sweep_id == SWEEPS.c.id)
+            .order_by(SWEEPS.c.id)
+        )
+        with self.engine.connect() as conn:
+            out = []
+            for m in conn.execute(q).mappings():
+                d = dict(m)
+                d["n_episodes"] = int(d["n_episodes"] or 0)
+                d["n_ok"] = int(d["n_ok"] or 0)
+                out.append(d)
+            return out
+
+
+# --------------------------------------------------------------------------- helpers
+def _install_sqlite_hooks(
+    engine: Engine, *, begin: str, wal: bool, query_only: bool = False
+) -> None:
+    """Take transaction control from the sqlite3 module (see SQLAlchemy's SQLite docs).
+
+    With the driver's implicit BEGIN disabled we emit our own: ``BEGIN IMMEDIATE`` for writers
+    takes the write lock up front, so a second writer waits on the busy timeout instead of
+    failing on a lock upgrade (which SQLite reports as "database is locked" at once).
+    """
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_conn: Any, _record: Any) -> None:
+        dbapi_conn.isolation_level = None
+        cur = dbapi_conn.cursor()
+        cur.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+        if wal:
+            _ensure_wal(cur)
+            cur.execute("PRAGMA synchronous = NORMAL")
+        if query_only:
+            cur.execute("PRAGMA query_only = 1")
+        cur.execute("PRAGMA foreign_keys = ON")
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn: Any) -> None:
+        conn.exec_driver_sql(begin)
+
+
+def _ensure_wal(cur: Any) -> None:
+    """Switch a new file to WAL. Two processes creating the file at once can make the switch
+    fail with "database is locked" without SQLite's busy handler ever waiting, so retry here."""
+    deadline = time.monotonic() + BUSY_TIMEOUT_MS / 1000
+    while True:
+        try:
+            if cur.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+                cur.execute("PRAGMA journal_mode = WAL")
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(random.uniform(0.005, 0.05))
+
+
+def _reason(exc: BaseException) -> str:
+    """One line: the driver's message without SQLAlchemy's SQL echo and background link."""
+    orig = getattr(exc, "orig", None)
+    text = str(orig if orig is not None else exc)
+    return text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+
+
+def _episode_row(sweep_id: int | None, key: str, r: EpisodeResult) -> dict[str, Any]:
+    s = r.spec
+    est = s.estimator
+    w = tuple(getattr(est, "w", ()) or ())
+    est_com = r.est_com_cm
+    return {
+        "sweep_id": sweep_id,
+        "episode_key": key,
+        "backend": s.backend,
+        "floor": s.floor,
+        "mu_floor_x": float(s.mu_floor_x),
+        "mu_floor_y": float(s.mu_floor_y),
+        "mu_pusher": float(s.mu_pusher),
+        "speed_cm_s": float(s.speed_cm_s),
+        "izz_scale": float(s.izz_scale),
+        "object": s.object,
+        "com_index": int(s.com_index),
+        "true_com_x_cm": float(s.com_cm[0]),
+        "true_com_y_cm": float(s.com_cm[1]),
+        "est_com_x_cm": None if est_com is None else float(est_com[0]),
+        "est_com_y_cm": None if est_com is None else float(est_com[1]),
+        "error_cm": None if r.error_cm is None else float(r.error_cm),
+        "n_pushes": int(r.n_pushes),
+        "status": r.status,
+        "failure": r.failure,
+        "wall_s": float(r.wall_s),
+        "sim_time_s": float(r.sim_time_s),
+        "seed": int(s.seed),
+        "mass_kg": float(s.mass_kg),
+        "height_cm": float(s.height_cm),
+        "push_length_cm": float(s.push_length_cm),
+        "w1": float(w[0]) if len(w) > 0 else None,
+        "w2": float(w[1]) if len(w) > 1 else None,
+        "theta_T_deg": _opt_float(getattr(est, "theta_T_deg", None)),
+        "C_bw_px": _opt_float(getattr(est, "C_bw_px", None)),
+        "n_push": None if getattr(est, "n_push", None) is None else int(est.n_push),
+        "rotation_source": getattr(est, "rotation_source", None),
+        "estimator": canonical_json(est),
+        "spec": canonical_json(s),
+        "detail": r.detail or "",
+        "created_at": _utcnow(),
+    }
+
+
+def _push_row(p: Any) -> dict[str, Any]:
+    return {
+        "k": int(p.k),
+        "contact_x_cm": float(p.contact_x_cm),
+        "contact_y_cm": float(p.contact_y_cm),
+        "dir_x": float(p.dir_x),
+        "dir_y": float(p.dir_y),
+        "rotation_deg": float(p.rotation_deg),
+        "rotation_true_deg": float(p.rotation_true_deg),
+        "decision": p.decision,
+        "region_px": int(p.region_px),
+    }
+
+
+def _opt_float(v: Any) -> float | None:
+    return None if v is None else float(v)

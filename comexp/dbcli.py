@@ -1,0 +1,315 @@
+"""`comexp-db`: query the results database (read-only): tables, summary, episodes, sweeps, plots.
+
+The database is always opened read-only, so a query can run beside a sweep that is writing and
+can never change stored results. Every error is one line on stderr and a non-zero exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import math
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any, NoReturn
+
+from sqlalchemy.exc import SQLAlchemyError
+
+from comexp.db import EPISODES, EpisodeFilter, ResultsDB
+from comexp.reports import (
+    condition_tables,
+    paper_markdown,
+    paper_tables,
+    summary_csv,
+    summary_markdown,
+    table_markdown,
+    tables_csv,
+)
+
+DEFAULT_DB = os.path.join("results", "comexp.db")
+EPISODE_DEFAULT_COLUMNS = (
+    "id",
+    "sweep_id",
+    "backend",
+    "floor",
+    "mu_floor_x",
+    "mu_floor_y",
+    "mu_pusher",
+    "speed_cm_s",
+    "izz_scale",
+    "object",
+    "com_index",
+    "error_cm",
+    "n_pushes",
+    "status",
+    "failure",
+    "wall_s",
+)
+SWEEP_COLUMNS = ("id", "started_at", "job_name", "git_rev", "n_episodes", "n_ok", "command_line")
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit status 1."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a bad command line in one line (no usage dump)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _nonneg_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0: {text!r}")
+    return v
+
+
+def _pos_float(text: str) -> float:
+    v = _nonneg_float(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    return v
+
+
+def _pos_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    return v
+
+
+def _nonneg_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
+    return v
+
+
+def _add_condition_filters(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("condition filters")
+    g.add_argument("--backend", help="pybullet | mujoco")
+    g.add_argument("--floor", help="iso | aniso")
+    g.add_argument("--speed", type=_pos_float, metavar="CM_S", help="pushing speed, cm/s")
+    g.add_argument(
+        "--mu-floor", type=_nonneg_float, metavar="MU", help="isotropic floor: mu_x = mu_y = MU"
+    )
+    g.add_argument("--mu-floor-x", type=_nonneg_float, metavar="MU", help="floor mu along x")
+    g.add_argument("--mu-floor-y", type=_nonneg_float, metavar="MU", help="floor mu along y")
+    g.add_argument("--mu-pusher", type=_nonneg_float, metavar="MU", help="pusher friction")
+    g.add_argument("--izz", type=_pos_float, metavar="SCALE", help="Izz scale factor")
+    g.add_argument("--object", help="object name")
+    g.add_argument("--sweep", type=_pos_int, metavar="ID", help="sweep id")
+    g.add_argument("--rotation-source", help="vision | oracle")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="comexp-db",
+        description="Query the comexp results database (opened read-only).",
+    )
+    p.add_argument("--db", default=DEFAULT_DB, help=f"file path or SQLAlchemy URL ({DEFAULT_DB})")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    t = sub.add_parser("table", help="per-object error table for each matching condition")
+    _add_condition_filters(t)
+    t.add_argument("--format", choices=("md", "csv"), default="md")
+
+    s = sub.add_parser("summary", help="one row per condition: n ok, n failed, mean error")
+    _add_condition_filters(s)
+    s.add_argument("--format", choices=("md", "csv"), default="md")
+
+    pp = sub.add_parser(
+        "paper", help="Tables II/III form: speeds side by side, frictions pooled, per floor"
+    )
+    _add_condition_filters(pp)
+
+    e = sub.add_parser("episodes", help="list or export episodes")
+    _add_condition_filters(e)
+    e.add_argument("--com-index", type=_nonneg_int)
+    e.add_argument("--status", choices=("ok", "failed"))
+    e.add_argument("--failure", help="failure reason, e.g. tipped")
+    e.add_argument("--limit", type=_pos_int)
+    e.add_argument("--columns", help="comma-separated episode columns ('all' for every column)")
+    e.add_argument("--format", choices=("md", "csv"), default="md")
+
+    w = sub.add_parser("sweeps", help="list sweeps (or show one with --show ID)")
+    w.add_argument("--show", type=_pos_int, metavar="ID", help="print one sweep's config")
+
+    pl = sub.add_parser("plot", help="draw the figures (PNG) into --out")
+    _add_condition_filters(pl)
+    pl.add_argument("--out", required=True, metavar="DIR")
+    return p
+
+
+def _filter(args: argparse.Namespace) -> EpisodeFilter:
+    try:
+        return EpisodeFilter(
+            backend=args.backend,
+            floor=args.floor,
+            speed_cm_s=args.speed,
+            mu_floor=args.mu_floor,
+            mu_floor_x=args.mu_floor_x,
+            mu_floor_y=args.mu_floor_y,
+            mu_pusher=args.mu_pusher,
+            izz_scale=args.izz,
+            object=args.object,
+            com_index=getattr(args, "com_index", None),
+            status=getattr(args, "status", None),
+            failure=getattr(args, "failure", None),
+            sweep_id=args.sweep,
+            rotation_source=args.rotation_source,
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+_HINT_COLUMNS = {
+    "backend": "backend",
+    "floor": "floor",
+    "speed_cm_s": "speed_cm_s",
+    "mu_floor": "mu_floor_x",
+    "mu_floor_x": "mu_floor_x",
+    "mu_floor_y": "mu_floor_y",
+    "mu_pusher": "mu_pusher",
+    "izz_scale": "izz_scale",
+    "object": "object",
+    "failure": "failure",
+    "sweep_id": "sweep_id",
+    "rotation_source": "rotation_source",
+}
+
+
+def _require_matches(db: ResultsDB, flt: EpisodeFilter) -> None:
+    """No match -> one line naming the filters that match nothing on their own, with choices."""
+    if db.count(flt) > 0:
+        return
+    if db.count() == 0:
+        raise CliError(f"no episodes stored in {db.where}")
+    hints = []
+    for name, column in _HINT_COLUMNS.items():
+        v = getattr(flt, name)
+        if v is not None and db.count(EpisodeFilter(**{name: v})) == 0:
+            stored = ", ".join(_fmt(x) for x in db.distinct(column) if x is not None)
+            hints.append(f"{name}={_fmt(v)} matches nothing (stored: {stored})")
+    detail = "; ".join(hints) if hints else "the filters match nothing together"
+    raise CliError(f"no episodes match {flt.describe()}: {detail}")
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    return "" if v is None else str(v)
+
+
+def _rows_out(rows: Sequence[dict[str, Any]], columns: Sequence[str], fmt: str) -> str:
+    if fmt == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(columns)
+        for r in rows:
+            w.writerow(["" if r[c] is None else r[c] for c in columns])
+        return buf.getvalue()
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    for r in rows:
+        cells = [_fmt(r[c]).replace("|", "\\|").replace("\n", " ") for c in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _episode_columns(spec: str | None) -> list[str]:
+    if spec is None:
+        return list(EPISODE_DEFAULT_COLUMNS)
+    if spec.strip() == "all":
+        return [c.name for c in EPISODES.c]
+    cols = [c.strip() for c in spec.split(",") if c.strip()]
+    unknown = [c for c in cols if c not in EPISODES.c]
+    if unknown or not cols:
+        known = ", ".join(c.name for c in EPISODES.c)
+        raise CliError(
+            f"unknown episode column(s) {', '.join(unknown) or '(none)'}; known: {known}"
+        )
+    return cols
+
+
+def _run(args: argparse.Namespace, out: Any) -> None:
+    db = ResultsDB(args.db, readonly=True)
+    try:
+        if args.command == "sweeps":
+            _sweeps(db, args, out)
+            return
+        flt = _filter(args)
+        _require_matches(db, flt)
+        if args.command == "table":
+            tables = condition_tables(db, flt)
+            if args.format == "csv":
+                out.write(tables_csv(tables))
+            else:
+                out.write("\n".join(table_markdown(t) for t in tables))
+        elif args.command == "summary":
+            tables = condition_tables(db, flt)
+            out.write(summary_csv(tables) if args.format == "csv" else summary_markdown(tables))
+        elif args.command == "paper":
+            out.write(paper_markdown(paper_tables(db, flt)))
+        elif args.command == "episodes":
+            cols = _episode_columns(args.columns)
+            rows = db.episodes(flt, columns=cols, limit=args.limit)
+            out.write(_rows_out(rows, cols, args.format))
+        elif args.command == "plot":
+            from comexp.plots import make_plots
+
+            for path in make_plots(db, args.out, flt):
+                out.write(f"{path}\n")
+    finally:
+        db.close()
+
+
+def _sweeps(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
+    sweeps = db.sweeps()
+    if args.show is None:
+        out.write(_rows_out(sweeps, SWEEP_COLUMNS, "md"))
+        return
+    match = [s for s in sweeps if s["id"] == args.show]
+    if not match:
+        raise CliError(f"no sweep with id {args.show} (stored: {len(sweeps)} sweeps)")
+    s = match[0]
+    for key in ("id", "started_at", "job_name", "host", "git_rev", "command_line"):
+        out.write(f"{key}: {_fmt(s.get(key))}\n")
+    out.write(f"episodes: {s['n_episodes']} ({s['n_ok']} ok)\n")
+    out.write("versions:\n")
+    for k, v in sorted((s.get("versions") or {}).items()):
+        out.write(f"  {k}: {v}\n")
+    out.write("config:\n")
+    out.write("".join(f"  {line}\n" for line in (s.get("config") or "").splitlines()))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        _run(args, sys.stdout)
+        sys.stdout.flush()
+    except BrokenPipeError:  # e.g. `comexp-db episodes | head`
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
+    except (CliError, ValueError, OSError, SQLAlchemyError) as exc:
+        text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
+        print(f"comexp-db: error: {text[0] if text else type(exc).__name__}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
