@@ -6,16 +6,26 @@ object's polygon is included so that workers never read config files.
 
 from __future__ import annotations
 
+import math
+import time
 from dataclasses import dataclass, field
 
+import numpy as np
 
-@dataclass(frozen=True)
-class EstimatorSettings:
-    w: tuple[float, float] = (1.0, 0.5)
-    theta_T_deg: float = 1.0
-    C_bw_px: float = 10.0
-    n_push: int = 5
-    rotation_source: str = "vision"  # vision | oracle
+from comexp.estimator import ComEstimator, EstimatorSettings
+from comexp.geometry import prism_object
+from comexp.perception import PoseTracker, observe, perceive_first
+from comexp.scene import FloorSpec, Pose2D, PusherSpec, SceneSpec
+from comexp.simulator import Simulator, contact_push, wrap_angle
+
+__all__ = [
+    "EpisodeResult",
+    "EpisodeSpec",
+    "EstimatorSettings",
+    "PushRecord",
+    "initial_yaw_rad",
+    "run_episode",
+]
 
 
 @dataclass(frozen=True)
@@ -65,3 +75,157 @@ class EpisodeResult:
     wall_s: float
     sim_time_s: float = 0.0
     detail: str = ""
+
+
+def initial_yaw_rad(seed: int) -> float:
+    """The object's initial yaw for an episode: uniform in [-pi, pi), a function of the seed."""
+    return float(np.random.default_rng([seed, 0x5EED]).uniform(-math.pi, math.pi))
+
+
+def build_scene(spec: EpisodeSpec, pusher: PusherSpec | None = None) -> SceneSpec:
+    """The simulator scene of an episode (centimetres -> metres), object at the floor centre."""
+    obj = prism_object(
+        spec.object,
+        [(x / 100.0, y / 100.0) for x, y in spec.outline_cm],
+        spec.height_cm / 100.0,
+        (spec.com_cm[0] / 100.0, spec.com_cm[1] / 100.0),
+        mass_kg=spec.mass_kg,
+        izz_scale=spec.izz_scale,
+        mu_pusher=spec.mu_pusher,
+    )
+    return SceneSpec(
+        floor=FloorSpec(spec.mu_floor_x, spec.mu_floor_y),
+        obj=obj,
+        pusher=pusher or PusherSpec(),
+        initial_pose=Pose2D(0.0, 0.0, initial_yaw_rad(spec.seed)),
+    )
+
+
+def _compose(a: Pose2D, b: Pose2D) -> Pose2D:
+    """a o b: the pose b (given in a's frame) expressed in the world."""
+    p = a.to_world(np.array([b.x_m, b.y_m]))
+    return Pose2D(float(p[0]), float(p[1]), a.yaw_rad + b.yaw_rad)
+
+
+def _relative(a: Pose2D, b: Pose2D) -> Pose2D:
+    """a^-1 o b: the pose b expressed in a's frame."""
+    p = a.to_object(np.array([b.x_m, b.y_m]))
+    return Pose2D(float(p[0]), float(p[1]), b.yaw_rad - a.yaw_rad)
+
+
+def _rotate(v: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
+
+
+def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
+    """One CoM estimation: build, perceive, then n_push times choose a contact (Alg. 1), push,
+    measure the rotation, update the region (Alg. 2). Never raises: failures are results.
+
+    The estimator works in its own frame (the first image's world frame, origin at the hull
+    centroid). The true initial pose is used only at the end, to express the estimate and the
+    push records in the object's own frame for evaluation; the true pose during the episode
+    only with `rotation_source=oracle`.
+    """
+    t0 = time.perf_counter()
+    pushes: list[PushRecord] = []
+    sim_time = 0.0
+
+    def failed(reason: str, detail: str = "") -> EpisodeResult:
+        return EpisodeResult(
+            spec=spec,
+            status="failed",
+            failure=reason,
+            est_com_cm=None,
+            error_cm=None,
+            n_pushes=len(pushes),
+            pushes=tuple(pushes),
+            wall_s=time.perf_counter() - t0,
+            sim_time_s=sim_time,
+            detail=detail,
+        )
+
+    try:
+        settings = spec.estimator
+        scene = build_scene(spec)
+        sim.build(scene)
+        true0 = sim.true_pose()
+        perc, obs0 = perceive_first(sim.render_depth(), settings.contact_spacing_px)
+        frame0 = perc.frame_pose  # estimator frame in the world at the first image
+        # estimator frame -> true object frame (evaluation only)
+        frame_in_obj = _relative(true0, frame0)
+        est = ComEstimator(
+            perc.region_m,
+            perc.contacts_m,
+            perc.contact_normals,
+            perc.pixel_m,
+            settings,
+            outline_m=perc.outline_m,
+            pusher_radius_m=scene.pusher.radius_m,
+        )
+        tracker = PoseTracker(perc, obs0) if settings.rotation_source == "vision" else None
+        frame = frame0  # current estimate of the estimator frame's pose in the world
+        true_prev = true0
+        speed_m_s = spec.speed_cm_s / 100.0
+        details: list[str] = []
+        for k in range(settings.n_push):
+            choice = est.next_push()
+            if choice is None:
+                if k == 0:
+                    return failed("no_valid_contact", "no reachable push line cuts the region")
+                details.append(f"stopped after {k} pushes: no valid contact")
+                break
+            P, N = choice
+            cmd = contact_push(
+                frame.to_world(P),
+                _rotate(N, frame.yaw_rad),
+                spec.push_length_cm / 100.0,
+                speed_m_s,
+                scene.pusher.radius_m,
+            )
+            out = sim.push(cmd)
+            sim_time += out.sim_time_s
+            if not out.ok:
+                return failed(out.status.value, f"push {k}: {out.status.value}")
+            if not out.contact_made:
+                details.append(f"push {k}: pusher missed the object")
+            true_now = sim.true_pose()
+            rot_true = math.degrees(wrap_angle(true_now.yaw_rad - true_prev.yaw_rad))
+            if tracker is not None:
+                new_frame = tracker.fit(observe(sim.render_depth())).pose
+            else:  # oracle: carry the frame with the true rigid motion
+                new_frame = _compose(true_now, _relative(true_prev, frame))
+            rot = math.degrees(wrap_angle(new_frame.yaw_rad - frame.yaw_rad))
+            decision = est.observe(P, N, rot)
+            frame, true_prev = new_frame, true_now
+            c_obj = frame_in_obj.to_world(P)
+            d_obj = _rotate(N, frame_in_obj.yaw_rad)
+            pushes.append(
+                PushRecord(
+                    k=k,
+                    contact_x_cm=float(c_obj[0] * 100.0),
+                    contact_y_cm=float(c_obj[1] * 100.0),
+                    dir_x=float(d_obj[0]),
+                    dir_y=float(d_obj[1]),
+                    rotation_deg=rot,
+                    rotation_true_deg=rot_true,
+                    decision=decision,
+                    region_px=est.region_px,
+                )
+            )
+        est_obj = frame_in_obj.to_world(est.estimate_m) * 100.0
+        err = math.hypot(est_obj[0] - spec.com_cm[0], est_obj[1] - spec.com_cm[1])
+        return EpisodeResult(
+            spec=spec,
+            status="ok",
+            failure=None,
+            est_com_cm=(float(est_obj[0]), float(est_obj[1])),
+            error_cm=float(err),
+            n_pushes=len(pushes),
+            pushes=tuple(pushes),
+            wall_s=time.perf_counter() - t0,
+            sim_time_s=sim_time,
+            detail="; ".join(details),
+        )
+    except Exception as exc:  # noqa: BLE001 - a sweep must survive any single episode
+        return failed("error", f"{type(exc).__name__}: {exc}")

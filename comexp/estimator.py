@@ -1,0 +1,300 @@
+"""The CoM estimator: Algorithm 1 (choose the next push) and Algorithm 2 (update the CoM region)
+of Gao, Elibol and Chong, as a library that needs no simulator.
+
+Everything is planar and in the object's own frame (metres, y up, CCW positive): the region is
+a set of points (the paper's pixels inside the convex hull, on a regular grid of one pixel), a
+push is a contact point P and a unit push direction N (the inward contour normal), and the
+measured rotation is the object's CCW yaw change during the push, in degrees.
+
+Sign rule (derived in docs/method.md): a push along N at P applies the moment
+(P - G) x N about the CoM G; by Mason's voting theorem with R_P in the middle of the friction
+cone the object turns with that moment, so a CCW (positive) rotation means N x (G - P) > 0:
+the CoM lies to the LEFT of the directed push line. This is the paper's Alg. 2 line 5 in a
+y-up frame. (In image pixels, rows down, the same rule reads with the opposite sign.)
+
+Use with a real robot (no simulator)::
+
+    region = initial_region_m            # (n, 2) points inside the object's convex hull
+    pushes = [ObservedPush(contact_m=(-0.04, 0.01), direction=(1.0, 0.0), rotation_deg=-7.5)]
+    region, estimate = estimate_com(region, pushes, pixel_m=0.0027)
+
+or drive Algorithm 1 step by step with `ComEstimator` (it proposes the next contact).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+ROTATION_SOURCES = ("vision", "oracle")
+D_METRICS = ("sine", "distance_px")
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """Knobs of Algorithms 1 and 2 (paper defaults), plus the readings of the paper's
+    ambiguities (defaults = the physically right reading, see docs/method.md)."""
+
+    w: tuple[float, float] = (1.0, 0.5)
+    theta_T_deg: float = 1.0
+    C_bw_px: float = 10.0
+    n_push: int = 5
+    rotation_source: str = "vision"  # vision | oracle
+    # --- readings of the paper's ambiguities -----------------------------------------------
+    d_metric: str = "sine"  # score term d: sine of the angle (Alg. 1 line 5) | distance_px (Eq. 1)
+    d_signed: bool = False  # score uses signed d (literal) instead of |d|
+    cos_signed: bool = False  # score uses N.V1 (literal) instead of |N.V1|
+    band_signed: bool = False  # band rule deletes d >= C_bw only (literal Alg. 2 l. 16) vs |d|
+    # --- contact candidates ----------------------------------------------------------------
+    contact_spacing_px: float = 2.0  # arc length between sampled contour points
+    check_reachability: bool = True  # drop contacts the pusher cannot reach along -N
+
+    def __post_init__(self) -> None:
+        if self.rotation_source not in ROTATION_SOURCES:
+            raise ValueError(
+                f"rotation_source must be one of {ROTATION_SOURCES}, got {self.rotation_source!r}"
+            )
+        if self.d_metric not in D_METRICS:
+            raise ValueError(f"d_metric must be one of {D_METRICS}, got {self.d_metric!r}")
+        if len(self.w) != 2:
+            raise ValueError(f"w needs two weights, got {self.w}")
+        if self.theta_T_deg < 0 or self.C_bw_px <= 0:
+            raise ValueError("theta_T_deg must be >= 0 and C_bw_px > 0")
+        if self.n_push < 0:
+            raise ValueError(f"n_push must be >= 0, got {self.n_push}")
+        if self.contact_spacing_px <= 0:
+            raise ValueError("contact_spacing_px must be > 0")
+
+
+def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z component of a x b for (..., 2) arrays."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centroid c, principal axes V (columns, V[:, 0] the main one) and variances of a point set."""
+    pts = np.asarray(points, dtype=float)
+    c = pts.mean(axis=0)
+    if len(pts) < 2:
+        return c, np.eye(2), np.zeros(2)
+    cov = np.cov((pts - c).T, bias=True)
+    lam, vec = np.linalg.eigh(cov)  # ascending
+    return c, vec[:, ::-1], lam[::-1]
+
+
+def line_cuts_region(region: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """For each push line (P_i, N_i): does it pass through the region, i.e. leave region points
+    strictly on both sides? (M,) bool. Vectorised over contacts x region points."""
+    side = cross2(N[:, None, :], region[None, :, :] - P[:, None, :])  # (M, n)
+    return (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
+
+
+def reachable_contacts(
+    outline_m: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    pusher_radius_m: float,
+    approach_m: float | None = None,
+    tol_m: float = 5e-4,
+) -> np.ndarray:
+    """Can a round pusher of this radius come in along +N and touch P without first hitting
+    the object? False for contacts deep in a notch narrower than the pusher, or shadowed by
+    another part of a non-convex outline. (M,) bool.
+
+    The pusher's disc is swept from far away (default: the outline's diameter) to where it
+    touches P; it may not overlap the outline by more than `tol_m` (touching P is allowed).
+    """
+    P = np.asarray(P, dtype=float)
+    N = np.asarray(N, dtype=float)
+    if len(P) == 0:
+        return np.zeros(0, dtype=bool)
+    poly = shapely.Polygon(outline_m).buffer(0)
+    if approach_m is None:
+        ext = np.ptp(np.asarray(outline_m), axis=0)
+        approach_m = float(np.hypot(*ext)) + 2 * pusher_radius_m
+    r_eff = pusher_radius_m - tol_m
+    near = P - N * (pusher_radius_m + tol_m)
+    far = P - N * (pusher_radius_m + approach_m)
+    paths = shapely.linestrings(np.stack([near, far], axis=1))
+    swept = shapely.buffer(paths, r_eff)
+    shapely.prepare(poly)
+    return ~shapely.intersects(poly, swept)
+
+
+def score_contacts(
+    region: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    settings: EstimatorSettings,
+    pixel_m: float,
+) -> np.ndarray:
+    """Eq. (1): s = w1 d + w2 cos, lower is better (Alg. 1 lines 3, 5, 6).
+
+    d measures how far the push line passes from the region's centroid c (small d = the cut
+    splits the region near its middle); cos = N . V1 is small when the push line crosses the
+    region's long axis (so the region does not stay prolate). V1's sign is arbitrary, so the
+    physical reading is |N . V1|; an unsigned d likewise (a line far on either side is as bad).
+    """
+    c, V, _ = pca(region)
+    v1 = V[:, 0]
+    cp = c[None, :] - P
+    if settings.d_metric == "sine":
+        norm = np.linalg.norm(cp, axis=1)
+        d = cross2(cp / np.maximum(norm, 1e-12)[:, None], N)
+    else:
+        d = cross2(cp, N) / pixel_m
+    if not settings.d_signed:
+        d = np.abs(d)
+    cos = N @ v1
+    if not settings.cos_signed:
+        cos = np.abs(cos)
+    return settings.w[0] * d + settings.w[1] * cos
+
+
+def choose_contact(
+    region: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    settings: EstimatorSettings,
+    pixel_m: float,
+    allowed: np.ndarray | None = None,
+) -> int | None:
+    """Index of the best valid contact (Alg. 1 lines 3-7), None if no push line cuts the region.
+
+    `allowed` masks out contacts that are invalid for reasons other than the region (e.g.
+    unreachable, see `reachable_contacts`).
+    """
+    if len(P) == 0 or len(region) == 0:
+        return None
+    valid = line_cuts_region(region, P, N)
+    if allowed is not None:
+        valid &= allowed
+    if not valid.any():
+        return None
+    s = score_contacts(region, P, N, settings, pixel_m)
+    s = np.where(valid, s, np.inf)
+    return int(np.argmin(s))
+
+
+def update_region(
+    region: np.ndarray,
+    P: Sequence[float] | np.ndarray,
+    N: Sequence[float] | np.ndarray,
+    rotation_deg: float,
+    settings: EstimatorSettings,
+    pixel_m: float,
+) -> tuple[np.ndarray, str]:
+    """Algorithm 2: keep the region's points consistent with the observed rotation.
+
+    |rotation| > theta_T: CCW keeps N x (G - P) > 0 (left of the push line), CW keeps < 0.
+    Otherwise the push line passed close to the CoM: keep the band |d| < C_bw around it
+    (d the point's distance to the line; C_bw converted from pixels with `pixel_m`).
+    Returns the new region and the decision (`ccw`, `cw`, `band`). An update that would leave
+    nothing (contradictory observations) keeps the previous region and says so in the decision
+    (`ccw-empty`, ...), rather than losing the estimate.
+    """
+    region = np.asarray(region, dtype=float)
+    P = np.asarray(P, dtype=float)
+    N = np.asarray(N, dtype=float)
+    N = N / np.linalg.norm(N)
+    side = cross2(N, region - P)  # signed distance to the push line, + = left of it
+    if abs(rotation_deg) > settings.theta_T_deg:
+        decision = "ccw" if rotation_deg > 0 else "cw"
+        keep = side > 0 if rotation_deg > 0 else side < 0
+    else:
+        decision = "band"
+        bw = settings.C_bw_px * pixel_m
+        # literal Alg. 2 line 15-16: d = (P_i - P) x N = -side, delete d >= C_bw
+        keep = (-side < bw) if settings.band_signed else (np.abs(side) < bw)
+    if not keep.any():
+        return region, decision + "-empty"
+    return region[keep], decision
+
+
+@dataclass(frozen=True)
+class ObservedPush:
+    """One push as a robot sees it, in the object frame: contact point (m), unit push direction
+    (the inward contact normal), and the measured CCW rotation of the object (deg)."""
+
+    contact_m: tuple[float, float]
+    direction: tuple[float, float]
+    rotation_deg: float
+
+
+def estimate_com(
+    region_m: np.ndarray,
+    pushes: Iterable[ObservedPush],
+    pixel_m: float,
+    settings: EstimatorSettings | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Apply Algorithm 2 for each observed push; returns (final region, estimate = its centroid).
+
+    `region_m` is the initial CoM region: points inside the object's convex hull on a regular
+    grid of spacing `pixel_m` (the pixel size that turns C_bw from pixels into metres).
+    """
+    settings = settings or EstimatorSettings()
+    region = np.asarray(region_m, dtype=float)
+    for push in pushes:
+        region, _ = update_region(
+            region, push.contact_m, push.direction, push.rotation_deg, settings, pixel_m
+        )
+    return region, region.mean(axis=0)
+
+
+class ComEstimator:
+    """Algorithm 1 as a stateful object: propose a push, then report its measured rotation.
+
+    Candidates are the sampled contour points with inward normals (object frame); with an
+    outline and a pusher radius, contacts the pusher cannot reach are dropped once up front.
+    """
+
+    def __init__(
+        self,
+        region_m: np.ndarray,
+        contacts_m: np.ndarray,
+        normals: np.ndarray,
+        pixel_m: float,
+        settings: EstimatorSettings | None = None,
+        outline_m: np.ndarray | None = None,
+        pusher_radius_m: float | None = None,
+    ) -> None:
+        self.settings = settings or EstimatorSettings()
+        self.region = np.asarray(region_m, dtype=float)
+        self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
+        n = np.asarray(normals, dtype=float).reshape(-1, 2)
+        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+        self.pixel_m = float(pixel_m)
+        if self.settings.check_reachability and outline_m is not None and pusher_radius_m:
+            self.allowed = reachable_contacts(
+                outline_m, self.contacts, self.normals, pusher_radius_m
+            )
+        else:
+            self.allowed = np.ones(len(self.contacts), dtype=bool)
+
+    @property
+    def estimate_m(self) -> np.ndarray:
+        return self.region.mean(axis=0)
+
+    @property
+    def region_px(self) -> int:
+        return len(self.region)
+
+    def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(contact, direction) of the best valid push, or None when no push line cuts the
+        region (or none is reachable)."""
+        j = choose_contact(
+            self.region, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
+        )
+        if j is None:
+            return None
+        return self.contacts[j].copy(), self.normals[j].copy()
+
+    def observe(self, contact_m: np.ndarray, direction: np.ndarray, rotation_deg: float) -> str:
+        """Algorithm 2 with the measured rotation; returns the decision (ccw, cw, band)."""
+        self.region, decision = update_region(
+            self.region, contact_m, direction, rotation_deg, self.settings, self.pixel_m
+        )
+        return decision

@@ -1,0 +1,148 @@
+"""Perception on exact ray-cast depth images of extruded polygons (no engine needed): masks,
+sign conventions, the initial region, contour normals, and the pose change between images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+
+from comexp.perception import (
+    PerceptionError,
+    PoseTracker,
+    object_mask,
+    observe,
+    perceive_first,
+    relative_rotation_deg,
+    render_prism_depth,
+)
+from comexp.scene import CameraSpec, DepthImage, Pose2D
+
+CAM = CameraSpec().model()
+H = 0.03
+BOX = np.array([(-0.04, -0.025), (0.04, -0.025), (0.04, 0.025), (-0.04, 0.025)])
+TRI = np.array([(-0.04, -0.03), (0.05, -0.02), (-0.01, 0.05)])
+TRI = TRI - TRI.mean(axis=0)
+L_SHAPE = np.array([(0, 0), (0.1, 0), (0.1, 0.03), (0.03, 0.03), (0.03, 0.08), (0, 0.08)])
+L_SHAPE = L_SHAPE - np.asarray(shapely.Polygon(L_SHAPE).centroid.coords[0])
+
+
+def test_rows_grow_downward_and_columns_with_x():
+    img = render_prism_depth(CAM, BOX, H, Pose2D(0.1, 0.1, 0.0))
+    v, u = np.nonzero(object_mask(img))
+    assert v.mean() < CAM.cy_px, "larger world y must be a smaller row"
+    assert u.mean() > CAM.cx_px, "larger world x must be a larger column"
+    img = render_prism_depth(CAM, BOX, H, Pose2D(-0.1, -0.1, 0.0))
+    v, u = np.nonzero(object_mask(img))
+    assert v.mean() > CAM.cy_px and u.mean() < CAM.cx_px
+
+
+def test_mask_region_and_hull_match_the_footprint():
+    pose = Pose2D(0.12, -0.07, 0.4)
+    perc, obs = perceive_first(render_prism_depth(CAM, BOX, H, pose))
+    # back-projected footprint points lie on or inside the true outline (within a pixel)
+    outline_w = shapely.Polygon(pose.to_world(BOX)).buffer(obs.pixel_m)
+    assert shapely.contains_xy(outline_w, obs.points_m[:, 0], obs.points_m[:, 1]).all()
+    # the region is a one-pixel grid filling the hull: its area matches the footprint
+    area = len(perc.region_m) * perc.pixel_m**2
+    assert area == pytest.approx(0.08 * 0.05, rel=0.08)
+    # the estimator frame sits at the footprint's centroid, yaw 0
+    assert math.hypot(perc.frame_pose.x_m - 0.12, perc.frame_pose.y_m + 0.07) < 1.5e-3
+    assert perc.frame_pose.yaw_rad == 0.0
+    assert perc.region_m.mean(axis=0) == pytest.approx([0.0, 0.0], abs=1.5e-3)
+
+
+@pytest.mark.parametrize("name,poly", [("box", BOX), ("tri", TRI), ("L", L_SHAPE)])
+def test_contacts_have_inward_normals(name, poly):
+    pose = Pose2D(-0.05, 0.08, 1.1)
+    perc, _ = perceive_first(render_prism_depth(CAM, poly, H, pose))
+    assert len(perc.contacts_m) >= 15
+    shape = shapely.Polygon(poly)
+    frame_in_obj = Pose2D(*pose.to_object(np.array([perc.frame_pose.x_m, perc.frame_pose.y_m])))
+    p_obj = Pose2D(frame_in_obj.x_m, frame_in_obj.y_m, -pose.yaw_rad).to_world(perc.contacts_m)
+    n_obj = Pose2D(0, 0, -pose.yaw_rad).to_world(perc.contact_normals)
+    np.testing.assert_allclose(np.linalg.norm(n_obj, axis=1), 1.0, atol=1e-9)
+    # a step along the normal goes into the object, a step against it leaves it
+    ins = p_obj + 0.004 * n_obj
+    out = p_obj - 0.004 * n_obj
+    assert shapely.contains_xy(shape, ins[:, 0], ins[:, 1]).all()
+    assert not shapely.contains_xy(shape, out[:, 0], out[:, 1]).any()
+    # and it is the true edge normal to within a few degrees
+    edges = np.roll(poly, -1, axis=0) - poly
+    edge_n = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+    edge_n /= np.linalg.norm(edge_n, axis=1, keepdims=True)
+    best = np.max(n_obj @ edge_n.T, axis=1)
+    err_deg = np.degrees(np.arccos(np.clip(best, -1, 1)))
+    assert np.median(err_deg) < 2.5 and err_deg.max() < 8.0, err_deg
+
+
+def test_concave_contacts_point_inward():
+    """The inner corner of the L: contacts on the two inner edges push into the material."""
+    perc, _ = perceive_first(render_prism_depth(CAM, L_SHAPE, H, Pose2D(0, 0, 0)))
+    c = perc.contacts_m + np.array([perc.frame_pose.x_m, perc.frame_pose.y_m])
+    inner_x = L_SHAPE[3, 0]  # the inner vertical edge x = 0.03 - cx
+    on_inner = (np.abs(c[:, 0] - inner_x) < 2e-3) & (c[:, 1] > L_SHAPE[2, 1] + 5e-3)
+    assert on_inner.sum() >= 3
+    n = perc.contact_normals[on_inner]
+    assert (n[:, 0] < -0.95).all(), "the inner vertical edge's inward normal is -x"
+
+
+@pytest.mark.parametrize("name,poly", [("box", BOX), ("tri", TRI), ("L", L_SHAPE)])
+def test_pose_change_is_recovered(name, poly):
+    pose0 = Pose2D(0.02, -0.03, 0.7)
+    perc, obs0 = perceive_first(render_prism_depth(CAM, poly, H, pose0))
+    tracker = PoseTracker(perc, obs0)
+    # the frame is fixed to the object: its true pose in any image is pose o (pose0^-1 o frame0)
+    f_obj = pose0.to_object(np.array([perc.frame_pose.x_m, perc.frame_pose.y_m]))
+    rng = np.random.default_rng(3)
+    rot_err, pos_err = [], []
+    pose_prev = pose0
+    for _ in range(8):
+        pose = Pose2D(
+            pose_prev.x_m + rng.uniform(-0.03, 0.03),
+            pose_prev.y_m + rng.uniform(-0.03, 0.03),
+            pose_prev.yaw_rad + math.radians(rng.uniform(-25, 25)),
+        )
+        fit = tracker.fit(observe(render_prism_depth(CAM, poly, H, pose)))
+        true_rot = math.degrees(pose.yaw_rad - pose0.yaw_rad)
+        rot_err.append(abs(math.degrees(fit.pose.yaw_rad) - true_rot))
+        pos_err.append(np.hypot(*(pose.to_world(f_obj) - [fit.pose.x_m, fit.pose.y_m])))
+        pose_prev = pose
+    assert np.median(rot_err) < 0.35 and max(rot_err) < 0.8, rot_err
+    assert max(pos_err) < 1e-3, pos_err
+
+
+def test_ccw_rotation_is_positive():
+    pose0 = Pose2D(0.0, 0.0, 0.0)
+    perc, obs0 = perceive_first(render_prism_depth(CAM, TRI, H, pose0))
+    tracker = PoseTracker(perc, obs0)
+    before = tracker.last
+    after = tracker.fit(observe(render_prism_depth(CAM, TRI, H, Pose2D(0.0, 0.0, 0.2)))).pose
+    assert relative_rotation_deg(before, after) == pytest.approx(math.degrees(0.2), abs=0.5)
+
+
+def test_large_rotation_is_found():
+    """A spin far outside ICP's basin from the previous pose is found by moment alignment."""
+    pose0 = Pose2D(0.0, 0.0, 0.0)
+    perc, obs0 = perceive_first(render_prism_depth(CAM, TRI, H, pose0))
+    tracker = PoseTracker(perc, obs0)
+    fit = tracker.fit(observe(render_prism_depth(CAM, TRI, H, Pose2D(0.05, 0.0, 2.0))))
+    assert math.degrees(fit.pose.yaw_rad) == pytest.approx(math.degrees(2.0), abs=0.8)
+
+
+def test_symmetry_is_reported():
+    """Vision cannot tell a rectangle from itself turned 180 deg: the tracker says so."""
+    perc, obs0 = perceive_first(render_prism_depth(CAM, BOX, H, Pose2D(0, 0, 0.3)))
+    assert PoseTracker(perc, obs0).symmetric_fold() == 2
+    perc, obs0 = perceive_first(render_prism_depth(CAM, TRI, H, Pose2D(0, 0, 0.3)))
+    assert PoseTracker(perc, obs0).symmetric_fold() == 1
+
+
+def test_empty_or_cut_images_are_refused():
+    floor = np.full((CAM.height_px, CAM.width_px), CAM.position_m[2])
+    with pytest.raises(PerceptionError):
+        observe(DepthImage(floor, CAM))
+    with pytest.raises(PerceptionError):  # object overlapping the image border
+        observe(render_prism_depth(CAM, BOX, H, Pose2D(0.3, 0.0, 0.0)))
