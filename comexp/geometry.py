@@ -47,12 +47,28 @@ def second_moments(poly: Sequence[Sequence[float]]) -> tuple[float, float]:
     return jx, jy
 
 
-def is_convex(poly: Sequence[Sequence[float]], tol: float = 1e-12) -> bool:
+def _scale2(p: np.ndarray) -> float:
+    """Squared size of a polygon: makes cross-product tolerances unit-independent."""
+    span = float(np.max(np.ptp(p, axis=0)))
+    return span * span if span > 0 else 1.0
+
+
+def _turns(p: np.ndarray) -> np.ndarray:
+    """z of (p[i] - p[i-1]) x (p[i+1] - p[i]) at every vertex i."""
+    d_in = p - np.roll(p, 1, axis=0)
+    d_out = np.roll(p, -1, axis=0) - p
+    return d_in[:, 0] * d_out[:, 1] - d_in[:, 1] * d_out[:, 0]
+
+
+def is_convex(poly: Sequence[Sequence[float]], tol: float = 1e-9) -> bool:
+    """True when every corner turns the same way (collinear vertices allowed).
+
+    `tol` is relative to the polygon's squared size, so the answer does not depend on units.
+    """
     p = as_array(poly)
-    d1 = np.roll(p, -1, axis=0) - p
-    d2 = np.roll(p, -2, axis=0) - np.roll(p, -1, axis=0)
-    z = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-    return bool(np.all(z >= -tol) or np.all(z <= tol))
+    z = _turns(p)
+    t = tol * _scale2(p)
+    return bool(np.all(z >= -t) or np.all(z <= t))
 
 
 def ccw(poly: Sequence[Sequence[float]]) -> np.ndarray:
@@ -60,12 +76,148 @@ def ccw(poly: Sequence[Sequence[float]]) -> np.ndarray:
     return p if signed_area(p) > 0 else p[::-1].copy()
 
 
-def convex_decomposition(poly: Sequence[Sequence[float]]) -> list[np.ndarray]:
-    """Counter-clockwise convex polygons whose union is `poly` (a simple polygon)."""
-    p = ccw(poly)
+def simplify(poly: Sequence[Sequence[float]], tol: float = 1e-9) -> np.ndarray:
+    """Drop repeated and collinear vertices (they carry no shape, and break ear tests).
+
+    A repeated vertex has a zero turn, so one test removes both kinds.
+    """
+    p = as_array(poly)
+    t = tol * _scale2(p)
+    while len(p) > 3:
+        flat = np.abs(_turns(p)) <= t
+        if not np.any(flat):
+            break
+        # one at a time: removing a vertex changes its neighbours' turns
+        p = np.delete(p, int(np.argmax(flat)), axis=0)
+    return p
+
+
+def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+
+def _ear_clip(p: np.ndarray, start: int, tol: float) -> list[list[int]]:
+    """Triangulate a CCW simple polygon without collinear vertices by ear clipping.
+
+    Ears are searched from vertex `start` on, so different starts give different
+    triangulations (the merge step below picks the best). A candidate ear is rejected if any
+    other vertex lies inside or on its triangle, which also rejects diagonals that touch
+    the boundary.
+    """
+    n = len(p)
+    idx = [(start + i) % n for i in range(n)]
+    tris: list[list[int]] = []
+    while len(idx) > 3:
+        m = len(idx)
+        for k in range(m):
+            a, b, c = idx[k - 1], idx[k], idx[(k + 1) % m]
+            if _cross(p[a], p[b], p[c]) <= tol:
+                continue  # reflex (or flat) corner: not an ear
+            blocked = False
+            for j in idx:
+                if j in (a, b, c):
+                    continue
+                q = p[j]
+                if (
+                    _cross(p[a], p[b], q) >= -tol
+                    and _cross(p[b], p[c], q) >= -tol
+                    and _cross(p[c], p[a], q) >= -tol
+                ):
+                    blocked = True
+                    break
+            if not blocked:
+                tris.append([a, b, c])
+                idx.pop(k)
+                break
+        else:
+            raise ValueError("ear clipping found no ear: the polygon is not simple")
+    tris.append(idx)
+    return tris
+
+
+def _merge(part1: list[int], part2: list[int], a: int, b: int) -> list[int]:
+    """Union of two CCW index polygons sharing the edge a->b (in part1) / b->a (in part2)."""
+    i = part1.index(b)
+    r1 = part1[i:] + part1[:i]  # b ... a
+    j = part2.index(a)
+    r2 = part2[j:] + part2[:j]  # a ... b
+    return r1 + r2[1:-1]
+
+
+def _edges(part: list[int]) -> list[tuple[int, int]]:
+    return [(part[k], part[(k + 1) % len(part)]) for k in range(len(part))]
+
+
+def _hertel_mehlhorn(p: np.ndarray, tris: list[list[int]]) -> list[list[int]]:
+    """Greedily remove diagonals between parts while the merged part stays convex.
+
+    Hertel-Mehlhorn: the result has at most 4x the minimum number of convex parts.
+    """
+    parts = [list(t) for t in tris]
+    merged = True
+    while merged:
+        merged = False
+        owner = {}
+        for pi, part in enumerate(parts):
+            for e in _edges(part):
+                owner[e] = pi
+        for pi, part in enumerate(parts):
+            for a, b in _edges(part):
+                pj = owner.get((b, a))
+                if pj is None or pj == pi:
+                    continue
+                cand = _merge(part, parts[pj], a, b)
+                if is_convex(p[cand]):
+                    parts[pi] = cand
+                    del parts[pj]
+                    merged = True
+                    break
+            if merged:
+                break
+    return parts
+
+
+def convex_decomposition(poly: Sequence[Sequence[float]], max_starts: int = 16) -> list[np.ndarray]:
+    """Counter-clockwise convex polygons whose union is `poly` (a simple polygon).
+
+    Engines collide with convex shapes only, and every extra part costs contact work, so we
+    want few parts: triangulate by ear clipping from up to `max_starts` different start
+    vertices, merge each triangulation greedily (Hertel-Mehlhorn), keep the one with the
+    fewest parts. Parts share only edges (no overlap), so their areas add up to the polygon's.
+    """
+    p = simplify(ccw(poly))
     if is_convex(p):
         return [p]
-    raise NotImplementedError("non-convex decomposition not implemented yet")
+    n = len(p)
+    tol = 1e-9 * _scale2(p)
+    best: list[list[int]] | None = None
+    for start in sorted({(k * n) // min(n, max_starts) for k in range(min(n, max_starts))}):
+        parts = _hertel_mehlhorn(p, _ear_clip(p, start, tol))
+        if best is None or len(parts) < len(best):
+            best = parts
+    assert best is not None
+    return [simplify(p[part]) for part in best]
+
+
+def min_width(poly: Sequence[Sequence[float]]) -> float:
+    """Smallest caliper width of the polygon's convex hull (the object's thinnest extent).
+
+    The minimum over directions is reached with one caliper flush with a hull edge.
+    """
+    from shapely.geometry import MultiPoint
+
+    hull = np.asarray(MultiPoint([tuple(q) for q in as_array(poly)]).convex_hull.exterior.coords)
+    hull = hull[:-1]
+    best = np.inf
+    for k in range(len(hull)):
+        e = hull[(k + 1) % len(hull)] - hull[k]
+        ne = np.hypot(*e)
+        if ne == 0:
+            continue
+        nrm = np.array([-e[1], e[0]]) / ne
+        proj = (hull - hull[k]) @ nrm
+        best = min(best, float(np.ptp(proj)))
+    return best
 
 
 def _to_tuple(poly: np.ndarray) -> Polygon2:
