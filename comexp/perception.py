@@ -35,7 +35,14 @@ ARC_SLOPE_DEG = 3.0
 
 
 class PerceptionError(RuntimeError):
-    """The image does not show a usable object (empty mask, object cut by the image border)."""
+    """The image does not show a usable object (empty mask, object cut by the image border).
+
+    `failure` is the episode failure reason it maps to.
+    """
+
+    def __init__(self, message: str, failure: str = "perception") -> None:
+        super().__init__(message)
+        self.failure = failure
 
 
 @dataclass(frozen=True)
@@ -135,10 +142,10 @@ def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
     cam = img.camera
     mask = object_mask(img, min_height_m)
     if not mask.any():
-        raise PerceptionError("no object above the floor in the depth image")
+        raise PerceptionError("no object above the floor in the depth image", "left_view")
     h, w = mask.shape
     if mask[0, :].any() or mask[-1, :].any() or mask[:, 0].any() or mask[:, -1].any():
-        raise PerceptionError("the object touches the image border")
+        raise PerceptionError("the object touches the image border", "left_view")
     v, u = np.nonzero(mask)
     depth = img.depth_m[v, u]
     points = cam.pixel_to_world(u, v, depth)[:, :2]

@@ -4,6 +4,7 @@ path), then end-to-end on both physics backends."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -47,12 +48,15 @@ class KinematicSim(Simulator):
 
     name = "fake"
 
-    def __init__(self, fail_at: int | None = None, status=PushStatus.TIPPED, raise_at=None):
+    def __init__(
+        self, fail_at: int | None = None, status=PushStatus.TIPPED, raise_at=None, slide_m=0.02
+    ):
         super().__init__()
         self.fail_at, self.status, self.raise_at = fail_at, status, raise_at
+        self.slide_m, self.n = slide_m, 0
 
     def build(self, scene: SceneSpec) -> None:
-        self.scene, self.pose, self.n = scene, scene.initial_pose, 0
+        self.scene, self.pose = scene, scene.initial_pose  # `n` counts pushes across re-builds
         self.outline = np.array(scene.obj.outline_m)
         self.com = np.array(scene.obj.com_m)
 
@@ -77,7 +81,7 @@ class KinematicSim(Simulator):
         g_w = before.to_world(self.com)
         yaw = before.yaw_rad + rot
         origin = g_w - Pose2D(0, 0, yaw).to_world(self.com)
-        shift = np.array(cmd.direction_xy) * 0.02 if contact else np.zeros(2)
+        shift = np.array(cmd.direction_xy) * self.slide_m if contact else np.zeros(2)
         self.pose = Pose2D(float(origin[0] + shift[0]), float(origin[1] + shift[1]), yaw)
         return PushOutcome(PushStatus.OK, before, self.pose, 0.5, 500, contact, 0.0, 0.0)
 
@@ -140,6 +144,19 @@ def test_push_failures_become_results(status):
     res = run_episode(spec_for(), KinematicSim(fail_at=2, status=status))
     assert res.status == "failed" and res.failure == status.value
     assert res.n_pushes == 2 and res.error_cm is None
+
+
+def test_object_is_recentred_before_it_can_leave_the_view():
+    """Long slides (a 40 cm/s push on the mu 0.1 floor) would carry the object out of the
+    camera's view within 5 pushes; the protocol puts it back at the centre, yaw unchanged."""
+    far = run_episode(spec_for(seed=5), KinematicSim(slide_m=0.12))
+    assert "re-centred" in far.detail
+    assert far.status == "ok" and far.n_pushes == 5, far.detail
+    assert far.error_cm < 1.0
+    lost = run_episode(
+        replace(spec_for(seed=5), recenter_beyond_cm=0.0), KinematicSim(slide_m=0.12)
+    )
+    assert lost.status == "failed" and lost.failure == "left_view", lost.detail
 
 
 def test_exceptions_become_error_results():
