@@ -6,15 +6,21 @@ Contact and solver choices (measured, see docs/physics_pybullet.md):
   clipped face (4+ points, no collision margin). Shapes built with createCollisionShape ignore
   the flag in pybullet 3.2.7: the prism then rests on a GJK point manifold of 1-3 points, rocks
   (|w| ~ 1 rad/s while sliding) and floats 1-2 mm on the margins.
-- The floor is a fixed-base multibody (box), the object a maximal-coordinates rigid body: the
-  floor-object contact then goes through the multibody solver with implicit cone friction and
-  world-fixed friction directions, which gives exactly mu*g deceleration per floor axis with
-  anisotropic scaling, and no spurious yaw while sliding.
-- Pair friction is a product in pybullet: object lateralFriction = 1, floor = max(mu_x, mu_y)
-  with anisotropicFriction = (mu_x, mu_y) / max (floor axes = world axes), pusher = mu_pusher.
-- The pusher is a 2-link prismatic (x, y) multibody under POSITION_CONTROL; the target of each
-  step is the commanded position at the end of that step, so it tracks the straight path with
-  less than one step of lag. It is only teleported (joint reset) when clear of the object.
+- Isotropic floor: a fixed rigid (maximal-coordinates) box, no anisotropicFriction. Its contact
+  with the object goes through Bullet's rigid-body solver, whose first friction direction is
+  each contact point's slip velocity: friction opposes sliding whatever the object's yaw.
+  (A multibody floor uses world-fixed friction directions and projects the impulse onto the
+  cone in a metric that depends on the contact point's position in world axes: the same push
+  rotated by -4.5 .. +9 deg depending on the object's yaw.)
+- Anisotropic floor: a fixed-base multibody box with anisotropicFriction = (mu_x, mu_y)/max:
+  world-fixed friction directions are the only frame in which the scaling means mu_x along
+  world x, mu_y along y (elliptic cone; diagonal slides: see docs/physics_pybullet.md).
+- Pair friction is a product in pybullet: object lateralFriction = 1, floor = max(mu_x, mu_y),
+  pusher = mu_pusher.
+- The pusher is a heavy (100 kg) free rigid cylinder: before each step its velocity is set so
+  that it reaches the commanded path point at the end of the step (zero lag in free space) and
+  its weight is cancelled. Being a rigid body, its contact with the object also gets slip-aligned
+  friction. It is only teleported when clear of the object.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import numpy as np
 import pybullet as pb
 
 from comexp.scene import (
+    GRAVITY_M_S2,
     DepthImage,
     ObjectSpec,
     ObjectState,
@@ -44,9 +51,6 @@ from comexp.simulator import PushOutcome, PushStatus, Simulator, classify_state
 # Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
 # pusher's top (half-width seen there ~0.29 m), and unreachable by an object still in view.
 _PARK_XY_M = (0.0, 0.5)
-# Joint motor force limit (N): far above any contact force of a 0.2 kg object, so the pusher is
-# effectively a stiff position-controlled robot.
-_PUSHER_MAX_FORCE_N = 500.0
 # Retract distance after a push (m) before teleporting to the park position, and its speed.
 _RETRACT_M = 0.006
 _RETRACT_SPEED_M_S = 0.1
@@ -54,6 +58,9 @@ _RETRACT_SPEED_M_S = 0.1
 _CLEAR_M = 5e-4
 # How often (steps) the shared failure classifier runs while stepping.
 _CHECK_EVERY = 5
+# Pusher mass (kg): 500x the object's, so contact impulses change its velocity by < 0.2 %
+# of the object's change within a step; its velocity is re-imposed before every step.
+_PUSHER_MASS_KG = 100.0
 
 
 def _fmt(x: float) -> str:
@@ -106,22 +113,31 @@ def _floor_urdf(size_m: float, thickness_m: float) -> str:
     )
 
 
-def _pusher_urdf(radius_m: float, length_m: float) -> str:
-    inertia = '<inertia ixx="1e-4" iyy="1e-4" izz="1e-4" ixy="0" ixz="0" iyz="0"/>'
-    limit = '<limit lower="-5" upper="5" effort="1000" velocity="100"/>'
+def _pusher_urdf(radius_m: float, length_m: float, mass_kg: float) -> str:
+    """A free cylinder; its large inertia keeps contact torques from turning it in one step."""
+    i = _fmt(mass_kg * 1.0)
     cyl = f'<geometry><cylinder radius="{_fmt(radius_m)}" length="{_fmt(length_m)}"/></geometry>'
     return (
-        '<?xml version="1.0"?><robot name="pusher">'
-        '<link name="anchor"><inertial><mass value="0"/>'
-        '<inertia ixx="0" iyy="0" izz="0" ixy="0" ixz="0" iyz="0"/></inertial></link>'
-        '<joint name="x" type="prismatic"><parent link="anchor"/><child link="slider"/>'
-        f'<axis xyz="1 0 0"/>{limit}</joint>'
-        f'<link name="slider"><inertial><mass value="0.5"/>{inertia}</inertial></link>'
-        '<joint name="y" type="prismatic"><parent link="slider"/><child link="tip"/>'
-        f'<axis xyz="0 1 0"/>{limit}</joint>'
-        f'<link name="tip"><inertial><mass value="0.5"/>{inertia}</inertial>'
-        f"<collision>{cyl}</collision></link></robot>"
+        '<?xml version="1.0"?><robot name="pusher"><link name="tip">'
+        f'<inertial><mass value="{_fmt(mass_kg)}"/>'
+        f'<inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/>'
+        f"</inertial><collision>{cyl}</collision></link></robot>"
     )
+
+
+def _pixel_centred_projection(proj: Sequence[float], width_px: int, height_px: int) -> list[float]:
+    """Shift an OpenGL projection (column-major) so the tiny renderer's pixels match the model.
+
+    With the plain projection, ER_TINY_RENDERER puts the optical axis on column W/2 and row
+    H/2 - 1 (measured: a box's top face came out +0.50 px right and 0.50 px up, ~1.4 mm at the
+    floor), i.e. it samples pixel corners, not the centres of the CameraModel convention
+    ((W-1)/2, (H-1)/2). Adding 1/W to P[2][0] and 1/H to P[2][1] moves the image half a pixel
+    left and down; tests/test_physics.py checks the result to 0.25 px.
+    """
+    m = list(proj)
+    m[8] += 1.0 / width_px
+    m[9] += 1.0 / height_px
+    return m
 
 
 def _point_polygon_distance(pt: np.ndarray, poly: np.ndarray) -> float:
@@ -158,6 +174,8 @@ class PybulletSimulator(Simulator):
         self._view: list[float] = []
         self._proj: list[float] = []
         self._steps_total = 0
+        self._pusher_target = (0.0, 0.0)
+        self._pusher_z = 0.0
 
     # --- construction ---------------------------------------------------------------------
     def _file(self, name: str, text: str) -> str:
@@ -190,7 +208,7 @@ class PybulletSimulator(Simulator):
         c = self._cid
         s = self.settings
         pb.resetSimulation(physicsClientId=c)
-        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=c)
+        pb.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=c)
         pb.setPhysicsEngineParameter(
             fixedTimeStep=s.timestep_s,
             numSubSteps=0,
@@ -203,41 +221,58 @@ class PybulletSimulator(Simulator):
         flags = pb.URDF_INITIALIZE_SAT_FEATURES | pb.URDF_USE_INERTIA_FROM_FILE
         fl = scene.floor
         floor_path = self._hashed_file("floor", "urdf", _floor_urdf(fl.size_m, fl.thickness_m))
-        self._floor = pb.loadURDF(floor_path, useFixedBase=True, flags=flags, physicsClientId=c)
+        # Isotropic floor: a rigid body, so that the floor-object contact goes through the
+        # rigid-body solver, whose first friction direction follows each point's slip velocity
+        # (friction opposes sliding whatever the object's yaw). Anisotropic floor: a multibody,
+        # whose contacts use friction directions fixed to the world axes, the only frame in
+        # which Bullet's anisotropicFriction scaling means "mu_x along x, mu_y along y".
+        self._floor = pb.loadURDF(
+            floor_path,
+            useFixedBase=True,
+            useMaximalCoordinates=fl.isotropic,
+            flags=flags,
+            physicsClientId=c,
+        )
         mu_max = max(fl.mu_x, fl.mu_y)
-        aniso = [fl.mu_x / mu_max, fl.mu_y / mu_max, 1.0] if mu_max > 0 else [1.0, 1.0, 1.0]
+        floor_dyn: dict[str, object] = {}
+        if not fl.isotropic:  # never set on iso floors: see docs/physics_pybullet.md
+            floor_dyn["anisotropicFriction"] = [fl.mu_x / mu_max, fl.mu_y / mu_max, 1.0]
         pb.changeDynamics(
             self._floor,
             -1,
             lateralFriction=mu_max,
-            anisotropicFriction=aniso,
             restitution=0.0,
             rollingFriction=0.0,
             spinningFriction=0.0,
             physicsClientId=c,
+            **floor_dyn,
         )
 
         pu = scene.pusher
-        pusher_path = self._hashed_file("pusher", "urdf", _pusher_urdf(pu.radius_m, pu.length_m))
+        self._pusher_z = pu.clearance_m + pu.length_m / 2.0
+        pusher_path = self._hashed_file(
+            "pusher", "urdf", _pusher_urdf(pu.radius_m, pu.length_m, _PUSHER_MASS_KG)
+        )
         self._pusher = pb.loadURDF(
             pusher_path,
-            basePosition=[0.0, 0.0, pu.clearance_m + pu.length_m / 2.0],
-            useFixedBase=True,
+            basePosition=[_PARK_XY_M[0], _PARK_XY_M[1], self._pusher_z],
+            useMaximalCoordinates=True,
             flags=flags,
             physicsClientId=c,
         )
-        for j in (0, 1):
-            pb.changeDynamics(
-                self._pusher,
-                j,
-                lateralFriction=scene.obj.mu_pusher,
-                restitution=0.0,
-                linearDamping=0.0,
-                angularDamping=0.0,
-                jointDamping=0.0,
-                physicsClientId=c,
-            )
-        pb.setCollisionFilterPair(self._pusher, self._floor, 1, -1, 0, physicsClientId=c)
+        pb.changeDynamics(
+            self._pusher,
+            -1,
+            lateralFriction=scene.obj.mu_pusher,
+            restitution=0.0,
+            rollingFriction=0.0,
+            spinningFriction=0.0,
+            linearDamping=0.0,
+            angularDamping=0.0,
+            activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING,
+            physicsClientId=c,
+        )
+        pb.setCollisionFilterPair(self._pusher, self._floor, -1, -1, 0, physicsClientId=c)
         self._teleport_pusher(_PARK_XY_M)
 
         obj = scene.obj
@@ -272,36 +307,55 @@ class PybulletSimulator(Simulator):
             cameraUpVector=[0.0, 1.0, 0.0],
             physicsClientId=c,
         )
-        self._proj = pb.computeProjectionMatrixFOV(
-            fov=cam.fov_deg,
-            aspect=cam.width_px / cam.height_px,
-            nearVal=cam.near_m,
-            farVal=cam.far_m,
-            physicsClientId=c,
+        self._proj = _pixel_centred_projection(
+            pb.computeProjectionMatrixFOV(
+                fov=cam.fov_deg,
+                aspect=cam.width_px / cam.height_px,
+                nearVal=cam.near_m,
+                farVal=cam.far_m,
+                physicsClientId=c,
+            ),
+            cam.width_px,
+            cam.height_px,
         )
 
     # --- pusher ---------------------------------------------------------------------------
-    def _teleport_pusher(self, xy: Sequence[float]) -> None:
-        for j in (0, 1):
-            pb.resetJointState(self._pusher, j, float(xy[j]), 0.0, physicsClientId=self._cid)
-        self._command_pusher(xy, (0.0, 0.0))
+    def _step_once(self) -> None:
+        """One engine step with the pusher driven onto its target.
 
-    def _command_pusher(self, xy: Sequence[float], vel: Sequence[float]) -> None:
-        pb.setJointMotorControlArray(
+        The pusher is a heavy free rigid body: before every step its velocity is set to reach
+        the target at the end of the step and its weight is cancelled, so it follows the path
+        with no lag in free space and is barely slowed by a 0.2 kg object (mass ratio 500).
+        """
+        c = self._cid
+        pos, _ = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=c)
+        inv_dt = 1.0 / self.settings.timestep_s
+        tx, ty = self._pusher_target
+        vel = [(tx - pos[0]) * inv_dt, (ty - pos[1]) * inv_dt, (self._pusher_z - pos[2]) * inv_dt]
+        pb.resetBaseVelocity(self._pusher, vel, [0.0, 0.0, 0.0], physicsClientId=c)
+        pb.applyExternalForce(
             self._pusher,
-            [0, 1],
-            pb.POSITION_CONTROL,
-            targetPositions=[float(xy[0]), float(xy[1])],
-            targetVelocities=[float(vel[0]), float(vel[1])],
-            forces=[_PUSHER_MAX_FORCE_N, _PUSHER_MAX_FORCE_N],
-            positionGains=[1.0, 1.0],
-            velocityGains=[1.0, 1.0],
-            physicsClientId=self._cid,
+            -1,
+            [0.0, 0.0, _PUSHER_MASS_KG * GRAVITY_M_S2],
+            pos,
+            pb.WORLD_FRAME,
+            physicsClientId=c,
         )
+        pb.stepSimulation(physicsClientId=c)
+
+    def _teleport_pusher(self, xy: Sequence[float]) -> None:
+        c = self._cid
+        pos = [float(xy[0]), float(xy[1]), self._pusher_z]
+        pb.resetBasePositionAndOrientation(self._pusher, pos, [0, 0, 0, 1], physicsClientId=c)
+        pb.resetBaseVelocity(self._pusher, [0, 0, 0], [0, 0, 0], physicsClientId=c)
+        self._pusher_target = (pos[0], pos[1])
+
+    def _command_pusher(self, xy: Sequence[float]) -> None:
+        self._pusher_target = (float(xy[0]), float(xy[1]))
 
     def _pusher_xy(self) -> np.ndarray:
-        js = pb.getJointStates(self._pusher, [0, 1], physicsClientId=self._cid)
-        return np.array([js[0][0], js[1][0]])
+        pos, _ = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=self._cid)
+        return np.array(pos[:2])
 
     def _pusher_clearance_m(self, xy: Sequence[float], state: ObjectState) -> float:
         """Gap between the pusher's surface and the object's footprint (negative = overlap)."""
@@ -365,9 +419,23 @@ class PybulletSimulator(Simulator):
     def step(self, duration_s: float) -> None:
         self._require_scene()
         n = max(0, round(duration_s / self.settings.timestep_s))
-        self._command_pusher(self._pusher_xy(), (0.0, 0.0))
+        self._command_pusher(self._pusher_xy())
         for _ in range(n):
-            pb.stepSimulation(physicsClientId=self._cid)
+            self._step_once()
+
+    def _planar_rest(self, s: SimSettings) -> bool:
+        """Is the object's planar motion (what the camera and the estimator see) at rest?
+
+        Judged on the horizontal velocity of the footprint point under the CoM and on the yaw
+        rate. Not on the full 3D velocity: a prism with a many-sided footprint (ellipse, disc,
+        hexagon) rocks by ~0.02 deg at rest in pybullet, because the floor contact keeps only 4
+        of its bottom corners and which 4 changes from step to step; that rocking moves the CoM
+        by mm/s (vertically and, at CoM height, sideways) and used to end pushes `not_settled`.
+        """
+        v, w = pb.getBaseVelocity(self._object, physicsClientId=self._cid)
+        c = self._com_local[2]  # CoM height: the floor point under it moves at v - w x (0,0,c)
+        vx, vy = v[0] - c * w[1], v[1] + c * w[0]
+        return math.hypot(vx, vy) < s.settle_speed_m_s and abs(w[2]) < s.settle_spin_rad_s
 
     # --- push -----------------------------------------------------------------------------
     def push(self, cmd: PushCommand) -> PushOutcome:
@@ -394,7 +462,7 @@ class PybulletSimulator(Simulator):
         def advance() -> ObjectState | None:
             """One step; returns the state when it was checked for failures."""
             nonlocal steps, contact, status, max_tilt
-            pb.stepSimulation(physicsClientId=c)
+            self._step_once()
             steps += 1
             if not contact and pb.getContactPoints(self._pusher, self._object, physicsClientId=c):
                 contact = True
@@ -412,7 +480,7 @@ class PybulletSimulator(Simulator):
         for k in range(1, n_move + 1):
             travelled = min(cmd.speed_m_s * k * dt, cmd.travel_m)
             target = start + direction * travelled
-            self._command_pusher(target, (0.0, 0.0))
+            self._command_pusher(target)
             advance()
             lag = max(lag, float(np.linalg.norm(self._pusher_xy() - target)))
             if status is not None:
@@ -426,8 +494,7 @@ class PybulletSimulator(Simulator):
                 advance()
                 if status is not None:
                     break
-                v, w = pb.getBaseVelocity(self._object, physicsClientId=c)
-                if math.hypot(*v) < s.settle_speed_m_s and math.hypot(*w) < s.settle_spin_rad_s:
+                if self._planar_rest(s):
                     quiet += 1
                     if quiet >= hold_steps:
                         break
@@ -442,7 +509,7 @@ class PybulletSimulator(Simulator):
             n_back = math.ceil(_RETRACT_M / (_RETRACT_SPEED_M_S * dt))
             for k in range(1, n_back + 1):
                 target = pos - direction * min(_RETRACT_SPEED_M_S * k * dt, _RETRACT_M)
-                self._command_pusher(target, (0.0, 0.0))
+                self._command_pusher(target)
                 advance()
                 if status is not None:
                     break

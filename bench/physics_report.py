@@ -23,7 +23,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from comexp.geometry import box_object  # noqa: E402
-from comexp.scene import GRAVITY_M_S2, FloorSpec, SceneSpec  # noqa: E402
+from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec  # noqa: E402
 from comexp.simulator import PushOutcome, Simulator, contact_push, make_simulator  # noqa: E402
 
 PUSH_LENGTH_M = 0.03
@@ -77,6 +77,88 @@ def push_left_face(sim: Simulator, scene: SceneSpec, y_contact: float, speed: fl
     contact = (scene.initial_pose.x_m - half_len, scene.initial_pose.y_m + y_contact)
     cmd = contact_push(contact, (1.0, 0.0), PUSH_LENGTH_M, speed, scene.pusher.radius_m)
     return sim.push(cmd)
+
+
+YAWS_DEG = (0, 30, 45, 90, -160)
+
+
+def yaw_rotations(sim: Simulator, mu_floor: float, offset_m: float, speed: float) -> list[float]:
+    """Rotation of the same object-frame push (along object +y, `offset_m` right of the CoM)
+    started at several world yaws; on an isotropic floor they should all be equal."""
+    com = (0.015, 0.008)
+    obj = _box(com=com, mu_pusher=0.5)
+    rots = []
+    for yaw_deg in YAWS_DEG:
+        pose = Pose2D(0.0, 0.0, math.radians(yaw_deg))
+        scene = SceneSpec(FloorSpec(mu_floor, mu_floor), obj, initial_pose=pose)
+        sim.build(scene)
+        contact = pose.to_world(np.array([com[0] + offset_m, -0.025]))
+        d = pose.to_world(np.array([0.0, 1.0]))
+        cmd = contact_push(contact, d, PUSH_LENGTH_M, speed, scene.pusher.radius_m)
+        rots.append(sim.push(cmd).rotation_deg)
+    return rots
+
+
+def diagonal_slide(sim: Simulator, mu_x: float, mu_y: float, angle_deg: float) -> np.ndarray:
+    """Mean acceleration (m/s^2, world) over 10-20 ms of a free slide at `angle_deg`."""
+    sim.build(SceneSpec(FloorSpec(mu_x, mu_y), _box()))
+    sim.step(0.05)
+    a = math.radians(angle_deg)
+    sim.set_object_velocity((0.3 * math.cos(a), 0.3 * math.sin(a), 0.0), (0.0, 0.0, 0.0))
+    sim.step(0.01)
+    va = np.array(sim.object_state().linear_velocity_m_s[:2])
+    sim.step(0.01)
+    vb = np.array(sim.object_state().linear_velocity_m_s[:2])
+    return (vb - va) / 0.01
+
+
+def objects_at_rest(sim: Simulator) -> list[tuple[str, ...]]:
+    """Tilt and residual motion of every built-in object left at rest for 0.5 s."""
+    from comexp.episode import EpisodeSpec, build_scene
+    from comexp.objects import builtin_objects, com_points
+
+    rows = []
+    for obj in builtin_objects():
+        for k, com in enumerate(com_points(obj, 2)):
+            spec = EpisodeSpec(
+                backend=sim.name,
+                floor="iso",
+                mu_floor_x=1.0,
+                mu_floor_y=1.0,
+                mu_pusher=0.5,
+                speed_cm_s=4.0,
+                izz_scale=1.0,
+                object=obj.name,
+                outline_cm=obj.outline_cm,
+                height_cm=obj.height_cm,
+                com_index=k,
+                com_cm=com,
+                seed=k,
+            )
+            scene = build_scene(spec)
+            sim.build(scene)
+            c = scene.obj.height_m / 2.0
+            tilt = planar = spin = full = 0.0
+            for _ in range(250):
+                sim.step(0.002)
+                st = sim.object_state()
+                v, w = st.linear_velocity_m_s, st.angular_velocity_rad_s
+                # object-frame origin is on the floor; the point under the CoM moves like it
+                tilt = max(tilt, st.tilt_deg)
+                planar = max(planar, math.hypot(v[0], v[1]))
+                spin = max(spin, abs(w[2]))
+                full = max(full, math.hypot(*v) + c * math.hypot(w[0], w[1]))
+            rows.append(
+                (
+                    obj.name,
+                    str(k),
+                    f"{tilt:.3f}",
+                    f"{1e3 * planar:.3f}",
+                    f"{spin:.4f}",
+                    f"{1e3 * full:.2f}",
+                )
+            )
+    return rows
 
 
 def _moved_cm(out: PushOutcome) -> float:
@@ -135,6 +217,45 @@ def main() -> None:
                 f"| {mu} | {100 * offset:+.1f} | {row[0].rotation_deg:+.3f} | "
                 f"{row[1].rotation_deg:+.3f} | {_moved_cm(row[0]):.2f} / {_moved_cm(row[1]):.2f} |"
             )
+
+    print("\n## Yaw invariance (iso floor; same object-frame push at yaw " + str(YAWS_DEG) + ")")
+    print("Box CoM (1.5, 0.8) cm, push along object +y, pusher mu 0.5; rotations in deg.\n")
+    print("| floor mu | offset mm | speed cm/s | rotations deg | spread deg |")
+    print("|---|---|---|---|---|")
+    for mu in (1.0, 0.1):
+        for offset in (0.002, 0.01):
+            for speed in SPEEDS_M_S:
+                r = yaw_rotations(sim, mu, offset, speed)
+                print(
+                    f"| {mu} | {1e3 * offset:g} | {100 * speed:g} | "
+                    f"{' '.join(f'{x:+.2f}' for x in r)} | {max(r) - min(r):.2f} |"
+                )
+
+    print("\n## Diagonal slides: acceleration over 10-20 ms (m/s^2), slide at 0.3 m/s\n")
+    print("Models for a unit slip direction s: elliptic max-dissipation")
+    print("-g (mu_x^2 s_x, mu_y^2 s_y)")
+    print("/ |(mu_x s_x, mu_y s_y)|; per-component -g (mu_x s_x, mu_y s_y).\n")
+    print("| floor (mu_x, mu_y) | slide deg | measured | elliptic max-diss | per-component |")
+    print("|---|---|---|---|---|")
+    for mx, my in ((1.0, 1.0), (0.1, 1.0), (1.0, 0.1)):
+        for ang in (0, 30, 45, 60):
+            acc = diagonal_slide(sim, mx, my, ang)
+            sx, sy = math.cos(math.radians(ang)), math.sin(math.radians(ang))
+            n = math.hypot(mx * sx, my * sy)
+            ell = (-GRAVITY_M_S2 * mx * mx * sx / n, -GRAVITY_M_S2 * my * my * sy / n)
+            comp = (-GRAVITY_M_S2 * mx * sx, -GRAVITY_M_S2 * my * sy)
+            print(
+                f"| ({mx}, {my}) | {ang} | ({acc[0]:+.3f}, {acc[1]:+.3f}) | "
+                f"({ell[0]:+.3f}, {ell[1]:+.3f}) | ({comp[0]:+.3f}, {comp[1]:+.3f}) |"
+            )
+
+    print("\n## Built-in objects at rest (2 CoMs each, iso floor mu 1, 0.5 s after build)\n")
+    print("Planar: horizontal speed of the object-frame origin (on the floor); 3D: its full")
+    print("speed + (h/2)|w_xy|, which includes the rocking of many-sided footprints.\n")
+    print("| object | com | max tilt deg | max planar mm/s | max yaw rate rad/s | max 3D mm/s |")
+    print("|---|---|---|---|---|---|")
+    for row in objects_at_rest(sim):
+        print("| " + " | ".join(row) + " |")
 
     print("\n## Wall time (this machine)\n")
     scene = SceneSpec(FloorSpec(0.5, 0.5), _box(com=(0.01, -0.005)))

@@ -109,3 +109,17 @@ def test_blocked_start_leaves_the_scene_untouched(sim):
     out = sim.push(PushCommand((edge_x + 0.002, 0.0), (-1.0, 0.0), 0.03, 0.4))
     assert out.status is PushStatus.PATH_BLOCKED and out.steps == 0
     assert sim.object_state() == before
+
+
+def test_free_rigid_pusher_keeps_its_height_and_orientation(sim):
+    """The pusher is a heavy free body driven by velocity: gravity is cancelled and contact
+    torques must not tilt it, or it would touch the floor or push at the wrong height."""
+    scene = SceneSpec(FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.03, mu_pusher=1.0))
+    z0 = scene.pusher.clearance_m + scene.pusher.length_m / 2.0
+    for speed in (0.4, 0.04):
+        sim.build(scene)
+        out = sim.push(contact_push((-0.04, 0.015), (1.0, 0.0), 0.03, speed, scene.pusher.radius_m))
+        assert out.ok and out.contact_made
+        pos, quat = pb.getBasePositionAndOrientation(sim._pusher, physicsClientId=sim._cid)
+        assert abs(pos[2] - z0) < 1e-6
+        assert max(abs(a) for a in pb.getEulerFromQuaternion(quat)) < 1e-3
