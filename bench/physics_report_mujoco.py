@@ -2,19 +2,25 @@
 
 Usage: .venv/bin/python bench/physics_report_mujoco.py [naive|default] ["{'field': value, ...}"]
 The optional dict overrides fields of MujocoContactSettings (parameter studies).
+
+       .venv/bin/python bench/physics_report_mujoco.py objects   # the 20 built-in objects
+       .venv/bin/python bench/physics_report_mujoco.py speed     # steps/s, wall time per push
 """
 
 from __future__ import annotations
 
 import ast
+import math
 import sys
+import time
 from dataclasses import replace
 
 import numpy as np
 from comexp.backends.mujoco_sim import DEFAULT_CONTACT, NAIVE_CONTACT, MujocoSimulator
 
-from comexp.geometry import box_object
-from comexp.scene import GRAVITY_M_S2, FloorSpec, SceneSpec
+from comexp.geometry import box_object, signed_area
+from comexp.objects import builtin_objects, com_points, load_builtin, to_object_spec
+from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
 from comexp.simulator import contact_push
 
 
@@ -49,7 +55,135 @@ def push(sim: MujocoSimulator, mu: float, speed: float, com, y_contact: float, m
     return out
 
 
+THROUGH_COM_SETUPS = (  # (CoM in the object frame, object yaw): contract, mirrored, rotated
+    ((0.015, 0.01), 0.0),
+    ((0.015, -0.01), 0.0),
+    ((0.015, 0.01), 0.7),
+    ((-0.015, -0.01), 2.0),
+)
+
+
+def push_through_com(sim: MujocoSimulator, mu: float, speed: float, com, yaw: float):
+    """Push the box's -x face (object frame) along its normal at the CoM's y, box at `yaw`."""
+    obj = box_object(0.08, 0.05, 0.03, com_m=com, mu_pusher=1.0)
+    sc = SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, yaw))
+    sim.build(sc)
+    contact = sc.initial_pose.to_world(np.array([-0.04, com[1]]))
+    normal = (math.cos(yaw), math.sin(yaw))
+    return sim.push(contact_push(contact, normal, 0.03, speed, sc.pusher.radius_m))
+
+
+def stop_distance_mm(sim: MujocoSimulator, mu: float, v0: float) -> float:
+    """Distance (mm) a box slides from v0 along x before it stops."""
+    sim.build(SceneSpec(FloorSpec(mu, mu), box_object(0.08, 0.05, 0.03, mu_pusher=0.5)))
+    x0 = sim.object_state().position_m[0]
+    sim.set_object_velocity((v0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    for _ in range(200):
+        sim.step(0.01)
+        v = sim.object_state().linear_velocity_m_s
+        if math.hypot(v[0], v[1]) < 1e-5:
+            break
+    return 1e3 * (sim.object_state().position_m[0] - x0)
+
+
+def objects(sim: MujocoSimulator) -> None:
+    """Every built-in object at its first study CoM, yawed 0.4 rad: rest after build, rendered
+    area, stopping distance of a 0.5 m/s slide (mu 1 and 0.1) and a through-CoM push."""
+    print(
+        "| object | parts | supports | tilt deg | z mm | area ratio | stop/ideal mu1 | "
+        "stop/ideal mu0.1 | through-CoM rot deg (4 / 40 cm/s, mu 1) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for obj in builtin_objects():
+        name = obj if isinstance(obj, str) else obj.name
+        o = load_builtin(name)
+        com = com_points(o, 1)[0]
+        spec = to_object_spec(o, com, 1.0, 1.0)
+        pose = Pose2D(0.03, -0.02, 0.4)
+        sim.build(SceneSpec(FloorSpec(1.0, 1.0), spec, initial_pose=pose))
+        st = sim.object_state()
+        img = sim.render_depth()
+        cam = img.camera
+        mask = img.depth_m < cam.position_m[2] - 0.5 * spec.height_m
+        area = mask.sum() * cam.pixel_size_m(cam.position_m[2] - spec.height_m) ** 2
+        ratio = area / abs(signed_area(spec.outline_m))
+        stops = []
+        for mu in (1.0, 0.1):
+            sim.build(SceneSpec(FloorSpec(mu, mu), spec, initial_pose=pose))
+            x0 = sim.object_state().position_m[0]
+            sim.set_object_velocity((0.5, 0.0, 0.0), (0.0, 0.0, 0.0))
+            sim.step(0.2 / mu)
+            stops.append((sim.object_state().position_m[0] - x0) / (0.25 / (2 * mu * GRAVITY_M_S2)))
+        rots = []
+        line = _normal_through_com(spec.outline_m, spec.com_m)
+        for v in (0.04, 0.4) if line else ():
+            contact, normal = line
+            sim.build(SceneSpec(FloorSpec(1.0, 1.0), spec))
+            out = sim.push(contact_push(contact, normal, 0.03, v, 0.005))
+            rots.append(f"{out.rotation_deg:+.3f}" if out.ok else out.status.value)
+        n_sup = sum(
+            1 for g in range(sim.model.ngeom) if (sim.model.geom(g).name or "").startswith("sup")
+        )
+        print(
+            f"| {name} | {len(spec.convex_parts_m)} | {n_sup} | {st.tilt_deg:.3f} | "
+            f"{1e3 * st.position_m[2]:+.3f} | {ratio:.3f} | {stops[0]:.3f} | {stops[1]:.3f} | "
+            f"{' / '.join(rots) or 'no edge normal through the CoM'} |"
+        )
+
+
+def _normal_through_com(outline, com) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The longest edge whose inward normal through the CoM meets it (contact, normal)."""
+    p = np.asarray(outline, dtype=float)
+    c = np.asarray(com, dtype=float)
+    best = None
+    for i in range(len(p)):
+        a, b = p[i], p[(i + 1) % len(p)]
+        e = b - a
+        length = float(np.hypot(*e))
+        t = float((c - a) @ e) / length
+        if not 0.005 <= t <= length - 0.005:
+            continue
+        foot = a + e / length * t
+        n = np.array([-e[1], e[0]]) / length  # CCW outline: left normal points inward
+        if best is None or length > best[0]:
+            best = (length, foot, n)
+    if best is None:
+        return None
+    _, foot, n = best
+    return (float(foot[0]), float(foot[1])), (float(n[0]), float(n[1]))
+
+
+def speed_report(sim: MujocoSimulator) -> None:
+    """Wall time and steps/s of the contract's through-CoM pushes (best of 3 after warm-up)."""
+    sc = SceneSpec(
+        FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.03, com_m=(0.015, 0.01), mu_pusher=1.0)
+    )
+    print("| push | steps | wall ms | steps/s | contacts at rest |")
+    print("|---|---|---|---|---|")
+    for v in (0.04, 0.4):
+        best = math.inf
+        for _ in range(4):
+            sim.build(sc)
+            t0 = time.perf_counter()
+            out = sim.push(contact_push((-0.04, 0.01), (1.0, 0.0), 0.03, v, 0.005))
+            best = min(best, time.perf_counter() - t0)
+        sim.build(sc)
+        print(
+            f"| {100 * v:g} cm/s, mu 1 | {out.steps} | {1e3 * best:.1f} | {out.steps / best:.0f} "
+            f"| {sim.data.ncon} |"
+        )
+    t0 = time.perf_counter()
+    for _ in range(50):
+        sim.build(sc)
+    print(f"\nbuild (same scene) {1e3 * (time.perf_counter() - t0) / 50:.2f} ms")
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] in ("objects", "speed"):
+        sim = MujocoSimulator()
+        (objects if sys.argv[1] == "objects" else speed_report)(sim)
+        sim.close()
+        return
     base = NAIVE_CONTACT if len(sys.argv) > 1 and sys.argv[1] == "naive" else DEFAULT_CONTACT
     kw = ast.literal_eval(sys.argv[2]) if len(sys.argv) > 2 else {}
     sim = MujocoSimulator(contact=replace(base, **kw))
@@ -69,6 +203,31 @@ def main() -> None:
                 f"| through CoM | {mu} | {speed} | {o.rotation_deg:+.3f} | "
                 f"{o.max_tilt_deg:.2f} | {o.status.value} |"
             )
+    print(
+        "\n| through CoM, pusher mu 1 | "
+        + " | ".join(
+            f"CoM {c[0] * 100:+.1f},{c[1] * 100:+.1f} cm yaw {y}" for c, y in THROUGH_COM_SETUPS
+        )
+        + " |"
+    )
+    print("|---" * (len(THROUGH_COM_SETUPS) + 1) + "|")
+    for mu in (1.0, 0.1):
+        for speed in (0.04, 0.4):
+            cells = []
+            for c, y in THROUGH_COM_SETUPS:
+                o = push_through_com(sim, mu, speed, c, y)
+                cells.append(
+                    f"{o.rotation_deg:+.3f} (tilt {o.max_tilt_deg:.1f})" if o.ok else o.status.value
+                )
+            print(f"| floor mu {mu}, {100 * speed:g} cm/s | " + " | ".join(cells) + " |")
+    print("\n| slide stop | floor mu | v0 (m/s) | stop (mm) | v0^2/(2 mu g) (mm) |")
+    print("|---|---|---|---|---|")
+    for mu in (1.0, 0.1):
+        for v0 in (0.04, 0.4):
+            ideal = 1e3 * v0 * v0 / (2 * mu * GRAVITY_M_S2)
+            print(f"| | {mu} | {v0} | {stop_distance_mm(sim, mu, v0):.3f} | {ideal:.3f} |")
+    print("\n| push | floor mu | speed (m/s) | rotation (deg) | max tilt (deg) | status |")
+    print("|---|---|---|---|---|---|")
     for mu in (0.1, 1.0):
         for speed in (0.4, 0.04):
             for off in (0.015, -0.015):
