@@ -150,6 +150,66 @@ def test_push_through_com_does_not_rotate(sim, speed, mu_floor):
     assert out.max_tilt_deg < 5.0
 
 
+def _normal_push_through_com(outline_m: np.ndarray, com_m: np.ndarray):
+    """Contact on the longest edge whose foot of the perpendicular from the CoM lies well
+    inside it (and the segment CoM-foot inside the object): pushing along that edge's inward
+    normal there puts the push line through the CoM along the contact normal."""
+    import shapely
+
+    poly = shapely.Polygon(outline_m)
+    best = None
+    for i in range(len(outline_m)):
+        a, b = outline_m[i], outline_m[(i + 1) % len(outline_m)]
+        t = (b - a) / np.linalg.norm(b - a)
+        s = float(np.dot(com_m - a, t))
+        length = float(np.linalg.norm(b - a))
+        margin = min(0.008, 0.3 * length)  # short edges of many-sided outlines: mid-edge
+        if not margin < s < length - margin:
+            continue
+        foot = a + s * t
+        inward = np.array([-t[1], t[0]])  # CCW outline: the interior is on the left
+        if not poly.buffer(1e-6).contains(shapely.LineString([foot + 1e-4 * inward, com_m])):
+            continue
+        if best is None or length > best[0]:
+            best = (length, foot, inward)
+    assert best is not None
+    return best[1], best[2]
+
+
+THROUGH_COM_OBJECTS = {
+    # name: CoM in the object frame (cm), away from the centroid
+    "rect_8x5": (0.8, -0.6),
+    "triangle_equilateral_10": (0.6, -0.5),
+    "pentagon_r5": (0.8, -0.6),
+    "hexagon_r5": (-0.7, 0.9),
+    "ellipse_12x7": (1.2, -0.6),
+    "l_shape": (-0.5, -0.5),
+}
+
+
+@pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
+@pytest.mark.parametrize("mu_floor", [0.1, 1.0])
+@pytest.mark.parametrize("name", sorted(THROUGH_COM_OBJECTS))
+def test_normal_push_through_com_does_not_rotate_any_shape(sim, name, mu_floor, speed):
+    """The built-in objects are low (1.5 cm) polygons, at a yaw off the floor's axes, with the
+    CoM off the centroid and a sticky pusher: no spurious turn from contact-point layout,
+    solver order or friction-cone shape (a rotation here becomes a wrong half-plane cut)."""
+    from comexp.objects import load_builtin, to_object_spec
+
+    obj = load_builtin(name)
+    com_cm = THROUGH_COM_OBJECTS[name]
+    spec = to_object_spec(obj, com_cm, 1.0, 1.0)
+    pose = Pose2D(0.02, -0.01, 0.3)
+    scene = SceneSpec(FloorSpec(mu_floor, mu_floor), spec, initial_pose=pose)
+    foot, inward = _normal_push_through_com(np.array(spec.outline_m), np.array(spec.com_m))
+    sim.build(scene)
+    n_w = pose.to_world(inward) - pose.to_world(np.zeros(2))
+    out = sim.push(contact_push(pose.to_world(foot), n_w, PUSH_LENGTH_M, speed, 0.005))
+    assert out.status is PushStatus.OK, out
+    assert out.contact_made
+    assert abs(out.rotation_deg) < 0.5, f"{sim.name} {name}: rotated {out.rotation_deg:.3f} deg"
+
+
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
 def test_offset_push_rotates_with_the_torque(sim, mu_floor):
     com = (0.0, 0.0)
