@@ -1,0 +1,296 @@
+"""`comexp`: run experiment jobs (Hydra app; one job = one (backend, floor, speed)).
+
+    comexp                                   # floor=iso speed=40: 1,600 episodes
+    comexp -m floor=iso,aniso speed=40,4     # the whole study, 4 jobs
+    comexp --cfg job                         # print the resolved config
+    comexp --help
+
+Bad input is rejected before anything is written: `ValidateCallback` checks every job of a run
+or multirun before Hydra creates an output folder, and `main` reduces Hydra's and our own
+errors to one line and a non-zero exit. The driver alone writes the database, as results
+arrive; rerunning a command skips the episodes already stored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shlex
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from comexp.config import ConfigError, PreparedJob, prepare_job
+from comexp.grid import expand_grid
+
+log = logging.getLogger("comexp")
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+EXIT_INTERRUPTED = 130
+VERSIONED_PACKAGES = (
+    "comexp",
+    "numpy",
+    "scipy",
+    "shapely",
+    "opencv-python-headless",
+    "pybullet",
+    "mujoco",
+    "hydra-core",
+    "omegaconf",
+    "ray",
+    "sqlalchemy",
+)
+
+
+# --- validation before Hydra writes anything ----------------------------------------------
+
+
+class Abort(BaseException):  # noqa: N818 - not an error class: a controlled exit
+    """Carries a one-line message and exit code to `main`.
+
+    A BaseException on purpose: Hydra turns a callback's exceptions into warnings and wraps a
+    job's exceptions with extra output; this passes through both untouched.
+    """
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(message)
+        self.message = message
+        self.code = code
+
+
+def _sweep_job_overrides(config: DictConfig) -> list[list[str]] | None:
+    """The override lists of every job the basic sweeper will launch (None for other
+    sweepers, whose jobs are only known while they run)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    target = OmegaConf.select(config, "hydra.sweeper._target_")
+    if target != "hydra._internal.core_plugins.basic_sweeper.BasicSweeper":
+        return None
+    params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+    args = [f"{k}={v}" for k, v in params.items()]
+    args += list(OmegaConf.to_container(config.hydra.overrides.task, resolve=False))
+    parsed = OverridesParser.create().parse_overrides(args)
+    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+
+
+class ValidateCallback(Callback):
+    """Checks every job's config (types, values, objects, database location) up front."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        try:
+            prepare_job(config)
+        except ConfigError as e:
+            raise Abort(str(e), EXIT_BAD_INPUT) from None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from hydra.core.global_hydra import GlobalHydra
+
+        jobs = _sweep_job_overrides(config)
+        if jobs is None:
+            return
+        loader = GlobalHydra.instance().config_loader()
+        for overrides in jobs:
+            try:
+                job_cfg = loader.load_sweep_config(config, list(overrides))
+            except Exception as e:
+                raise Abort(_hydra_error_line(e), EXIT_BAD_INPUT) from None
+            try:
+                prepare_job(job_cfg)
+            except ConfigError as e:
+                where = " ".join(overrides)
+                raise Abort(f"{e} (job: {where})" if where else str(e), EXIT_BAD_INPUT) from None
+
+
+# --- one job -----------------------------------------------------------------------------------
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": sys.version.split()[0]}
+    for name in VERSIONED_PACKAGES:
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            out[name] = metadata.version(name)
+    return out
+
+
+def _git_rev() -> str | None:
+    """The source revision when comexp runs from a git checkout (read-only query)."""
+    try:
+        res = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return res.stdout.strip() or None if res.returncode == 0 else None
+
+
+def open_db(url: str) -> Any:
+    """Open (creating) the results database, or fail with a one-line `ConfigError`."""
+    from comexp.db import ResultsDB
+
+    try:
+        db = ResultsDB(url)
+    except Exception as e:  # OSError, SQLAlchemy errors: say what and where
+        raise ConfigError(f"db: cannot open {url!r}: {str(e).splitlines()[0]}") from None
+    try:
+        db.check_writable()
+    except (ValueError, OSError) as e:
+        db.close()
+        raise ConfigError(f"db: {str(e).splitlines()[0]}") from None
+    return db
+
+
+def run_job(cfg: DictConfig) -> dict[str, Any]:
+    """Validate, expand the grid, run what is not stored yet, write the job's reports."""
+    from comexp.db import episode_key
+    from comexp.workers.pool import EpisodePool, Progress, ensure_ray, run_and_store
+
+    job: PreparedJob = prepare_job(cfg)
+    exp = job.cfg
+    specs = expand_grid(exp, job.objects, estimator=job.estimator)
+    label = f"{exp.backend.name} {exp.floor.name} {exp.speed:g} cm/s"
+    db = open_db(exp.db)
+    try:
+        keys = [episode_key(s) for s in specs]
+        stored = db.stored_keys(keys)
+        todo = [s for s, k in zip(specs, keys, strict=True) if k not in stored]
+        log.info(
+            "%s: %d episodes, %d already stored, %d to run (db %s)",
+            label,
+            len(specs),
+            len(specs) - len(todo),
+            len(todo),
+            exp.db,
+        )
+        summary: dict[str, Any] = {"episodes": len(specs), "skipped": len(specs) - len(todo)}
+        if todo:
+            hc = HydraConfig.get()
+            job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+            sweep_id = db.start_sweep(
+                command_line=shlex.join(["comexp", *sys.argv[1:]]),
+                config_yaml=OmegaConf.to_yaml(job_cfg, resolve=True),
+                job_name=Path(hc.runtime.output_dir).name,  # ties the sweep to its folder
+                versions=_versions(),
+                git_rev=_git_rev(),
+            )
+            ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
+            pool = EpisodePool(
+                exp.backend.name,
+                exp.workers,
+                runner=exp.execution.runner,
+                simulator_factory=exp.execution.simulator_factory,
+                batch_size=exp.execution.batch_size,
+                max_retries=exp.execution.max_retries,
+                replace_timeout_s=exp.execution.restart_timeout_s,
+            )
+            with pool:
+                stats = run_and_store(
+                    pool,
+                    todo,
+                    lambda rs: db.add_results(sweep_id, rs),
+                    progress=Progress(len(todo), desc=label),
+                )
+            failures = ", ".join(f"{k} {v}" for k, v in stats.failures.most_common())
+            print(
+                f"{label}: ran {stats.done} episodes in {stats.wall_s:.1f} s "
+                f"({stats.failed} failed{': ' + failures if failures else ''}), "
+                f"stored {stats.stored}"
+            )
+            summary.update(ran=stats.done, failed=stats.failed, stored=stats.stored)
+        else:
+            print(f"{label}: all {len(specs)} episodes already stored")
+        from comexp.reports import write_job_reports
+
+        out_dir = HydraConfig.get().runtime.output_dir
+        paths, text = write_job_reports(
+            db, out_dir, backend=exp.backend.name, floor=exp.floor.name, speed_cm_s=exp.speed
+        )
+        if text:
+            print(text)
+        if paths:
+            print(f"reports ({len(paths)} files): {out_dir}")
+        summary["reports"] = [str(p) for p in paths]
+        return summary
+    finally:
+        db.close()
+
+
+@hydra.main(config_path="pkg://comexp.conf", config_name="config", version_base="1.3")
+def _app(cfg: DictConfig) -> dict[str, Any]:
+    from comexp.workers.pool import PoolError
+
+    try:
+        return run_job(cfg)
+    except ConfigError as e:
+        raise Abort(str(e), EXIT_BAD_INPUT) from None
+    except PoolError as e:
+        raise Abort(str(e), EXIT_FAILED) from None
+
+
+# --- error reporting ----------------------------------------------------------------------------
+
+
+def _hydra_error_line(e: BaseException) -> str:
+    """One line out of Hydra's and OmegaConf's multi-line messages."""
+    from hydra.errors import MissingConfigException
+
+    if isinstance(e, MissingConfigException) and e.missing_cfg_file and e.options is not None:
+        group, _, name = e.missing_cfg_file.rpartition("/")
+        if group:
+            return f"unknown {group} {name!r} (choose one of: {', '.join(e.options)})"
+    cause = e.__cause__ or e.__context__
+    for err in (cause, e):
+        key = getattr(err, "full_key", None)
+        msg = getattr(err, "msg", None)
+        if key and msg:
+            return f"{key}: {str(msg).splitlines()[0]}"
+    text = [t.strip() for t in str(e).splitlines() if t.strip()]
+    if cause is not None and (not text or text[-1].endswith(":")):
+        text += [t.strip() for t in str(cause).splitlines() if t.strip()][:1]
+    return " ".join(text[:2]) if text else type(e).__name__
+
+
+def _die(message: str, code: int) -> None:
+    print(f"comexp: error: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
+def main() -> None:
+    """Console script. Hydra would print multi-line errors; we ask it to raise (unless the
+    user set HYDRA_FULL_ERROR=1 to see everything) and print one line instead."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    user_full = os.environ.get("HYDRA_FULL_ERROR") == "1"
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    try:
+        _app()
+    except Abort as e:
+        _die(e.message, e.code)
+    except KeyboardInterrupt:
+        _die(
+            "interrupted; finished episodes are stored, run the same command to resume",
+            EXIT_INTERRUPTED,
+        )
+    except (HydraException, OmegaConfBaseException) as e:
+        if user_full:
+            raise
+        _die(_hydra_error_line(e), EXIT_BAD_INPUT)
+
+
+if __name__ == "__main__":
+    main()

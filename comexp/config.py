@@ -1,0 +1,442 @@
+"""Structured configuration of one experiment job, its validation, and object lookup.
+
+The dataclasses below are registered in Hydra's ConfigStore as the schema of `conf/config.yaml`,
+so a wrong *type* (``speed=abc``) is rejected by Hydra while composing. Wrong *values*
+(negative speed, unknown object, unwritable database, ...) are caught by `prepare_job`, which
+the CLI runs before Hydra creates any output folder (see `comexp.cli`): bad input must cost
+nothing and leave nothing behind.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import re
+import tempfile
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
+
+from comexp.episode import EstimatorSettings
+
+FLOOR_KINDS = ("iso", "aniso")
+ANISO_ORIENTATIONS = ("xy", "yx")
+ROTATION_SOURCES = ("vision", "oracle")
+OBJECT_GROUP = "object"
+SCHEMA_NAME = "comexp_schema"
+
+
+class ConfigError(ValueError):
+    """Bad user input; the message is one line that names the offending key."""
+
+
+# --- schema -------------------------------------------------------------------------------
+
+
+@dataclass
+class BackendConfig:
+    name: str = "pybullet"  # pybullet | mujoco
+
+
+@dataclass
+class FloorConfig:
+    """`floor=iso`: each value of `mu` is one floor, mu_x = mu_y = value.
+
+    `floor=aniso`: `mu` = [mu_a, mu_b], the coefficients along the floor's two principal axes;
+    each entry of `orientations` is one floor: ``xy`` gives (mu_x, mu_y) = (mu_a, mu_b) and
+    ``yx`` the swapped one. Both orientations run by default (``floor.orientations=[xy]``
+    runs one).
+    """
+
+    name: str = MISSING  # iso | aniso
+    mu: list[float] = MISSING
+    orientations: list[str] | None = None
+
+
+@dataclass
+class PusherConfig:
+    mu: list[float] = field(default_factory=lambda: [0.1, 1.0])
+
+
+@dataclass
+class GridConfig:
+    objects: list[str] | None = None  # None: every config in the `object` group
+    coms_per_object: int = 10
+    izz_scales: list[float] = field(default_factory=lambda: [1.0, 10.0])
+    com_margin_cm: float = 1.0  # sampled CoMs keep this distance from the outline
+
+
+@dataclass
+class RayConfig:
+    address: str | None = None  # None: start a local Ray; "auto" or host:port: join a cluster
+    log_to_driver: bool = False  # worker stdout/stderr on the terminal (engines are chatty)
+
+
+@dataclass
+class ExecutionConfig:
+    """How episodes are run; the dotted paths exist so tests can inject cheap fakes."""
+
+    batch_size: int = 8  # episodes per Ray task: ~0.5 ms overhead vs ~100 ms per episode
+    max_retries: int = 2  # a batch whose worker dies is retried this often, then split
+    restart_timeout_s: float = 60.0  # a replacement worker not up by then is dropped
+    runner: str = "comexp.episode:run_episode"
+    simulator_factory: str = "comexp.simulator:make_simulator"
+
+
+_UNIT_SUFFIX = re.compile(r"_(deg|rad|px|cm|mm|m|s|ms|kg)$")
+
+
+def _config_name(field_name: str) -> str:
+    """`theta_T_deg` -> `theta_T`: the command line names estimator knobs as the paper does."""
+    return _UNIT_SUFFIX.sub("", field_name)
+
+
+def _config_type(tp: Any) -> Any:
+    """OmegaConf has no tuples: a tuple field becomes a list of its element type."""
+    if typing.get_origin(tp) is tuple:
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        return list[args[0]] if args else list[Any]
+    if typing.get_origin(tp) is typing.Literal:
+        return str
+    return tp
+
+
+def _estimator_fields() -> list[tuple[str, str, Any, Any]]:
+    """(config name, settings field name, config type, dataclasses.field) for every field of
+    `EstimatorSettings`, so knobs added there appear on the command line without edits here."""
+    hints = typing.get_type_hints(EstimatorSettings)
+    names = [f.name for f in dataclasses.fields(EstimatorSettings)]
+    short = [_config_name(n) for n in names]
+    out = []
+    for f, name, cfg_name in zip(dataclasses.fields(EstimatorSettings), names, short, strict=True):
+        if short.count(cfg_name) > 1 or cfg_name in names and cfg_name != name:
+            cfg_name = name  # stripping the unit would collide: keep the full name
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            raise TypeError(f"EstimatorSettings.{name} needs a default to be configurable")
+        if isinstance(default, tuple):
+            default = list(default)
+        if isinstance(default, list):
+            spec = field(default_factory=lambda d=default: list(d))
+        else:
+            spec = field(default=default)
+        out.append((cfg_name, name, _config_type(hints[name]), spec))
+    return out
+
+
+_ESTIMATOR_FIELDS = _estimator_fields()
+
+EstimatorConfig = dataclasses.make_dataclass(
+    "EstimatorConfig",
+    [(cfg_name, tp, spec) for cfg_name, _, tp, spec in _ESTIMATOR_FIELDS],
+)
+EstimatorConfig.__doc__ = (
+    "Estimator knobs, named as in the paper (units stripped): mapped field by field onto "
+    "`comexp.episode.EstimatorSettings`."
+)
+
+
+@dataclass
+class ExperimentConfig:
+    """One Hydra job = one (backend, floor, speed); the grid fans out over the rest."""
+
+    backend: BackendConfig = MISSING
+    floor: FloorConfig = MISSING
+    speed: float = 40.0  # cm/s
+    pusher: PusherConfig = field(default_factory=PusherConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    workers: int = 2
+    ray: RayConfig = field(default_factory=RayConfig)
+    execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+    db: str = "results/comexp.db"  # SQLAlchemy URL or file path (relative to the current dir)
+    seed: int = 0
+
+
+def register_configs() -> None:
+    """Register the schema; `conf/config.yaml` lists it first in its defaults."""
+    cs = ConfigStore.instance()
+    cs.store(name=SCHEMA_NAME, node=ExperimentConfig)
+
+
+register_configs()
+
+
+# --- conversion and validation ------------------------------------------------------------
+
+
+def estimator_settings(est: Any) -> EstimatorSettings:
+    """Map the `estimator` node onto `EstimatorSettings` (lists back to tuples)."""
+    kwargs = {}
+    for cfg_name, name, _, _ in _ESTIMATOR_FIELDS:
+        value = getattr(est, cfg_name) if not isinstance(est, Mapping) else est[cfg_name]
+        if OmegaConf.is_config(value):
+            value = OmegaConf.to_container(value)
+        if isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return EstimatorSettings(**kwargs)
+
+
+def to_experiment(cfg: DictConfig) -> ExperimentConfig:
+    """The job's config as plain dataclasses (the `hydra` node is dropped)."""
+    job = cfg
+    if "hydra" in cfg:  # a callback's view of the config: drop Hydra's own node
+        job = copy.deepcopy(cfg)
+        with open_dict(job):
+            job.pop("hydra")
+    try:
+        obj = OmegaConf.to_object(job)
+    except Exception as e:  # MissingMandatoryValue, ValidationError: say which key
+        key = getattr(e, "full_key", None)
+        msg = getattr(e, "msg", str(e)).splitlines()[0]
+        raise ConfigError(f"{key}: {msg}" if key else msg) from None
+    if not isinstance(obj, ExperimentConfig):
+        raise ConfigError("the primary config must be based on the comexp schema")
+    return obj
+
+
+def _finite(x: float) -> bool:
+    return isinstance(x, int | float) and math.isfinite(x)
+
+
+def _check_list(key: str, values: Sequence[float], *, minimum: float, strict: bool) -> None:
+    if not values:
+        raise ConfigError(f"{key} must not be empty")
+    for v in values:
+        bad = not _finite(v) or (v <= minimum if strict else v < minimum)
+        if bad:
+            op = ">" if strict else ">="
+            raise ConfigError(f"{key} values must be finite and {op} {minimum:g}, got {v!r}")
+    if len(set(values)) != len(values):
+        raise ConfigError(f"{key} has duplicate values: {list(values)}")
+
+
+def validate(cfg: ExperimentConfig) -> EstimatorSettings:
+    """Value checks that a schema cannot express; returns the estimator settings."""
+    from comexp.simulator import backend_names
+
+    if cfg.backend.name not in backend_names():
+        raise ConfigError(
+            f"unknown backend {cfg.backend.name!r} (choose one of: {', '.join(backend_names())})"
+        )
+    fl = cfg.floor
+    if fl.name not in FLOOR_KINDS:
+        raise ConfigError(f"floor.name must be one of {', '.join(FLOOR_KINDS)}, got {fl.name!r}")
+    _check_list("floor.mu", fl.mu, minimum=0.0, strict=False)
+    if fl.name == "iso" and fl.orientations is not None:
+        raise ConfigError("floor.orientations applies to floor=aniso only")
+    if fl.name == "aniso":
+        if len(fl.mu) != 2:
+            raise ConfigError(
+                f"floor=aniso needs floor.mu=[mu_a, mu_b] (two values), got {list(fl.mu)}"
+            )
+        if not fl.orientations:
+            raise ConfigError("floor.orientations must list at least one of: xy, yx")
+        for o in fl.orientations:
+            if o not in ANISO_ORIENTATIONS:
+                raise ConfigError(f"floor.orientations: unknown orientation {o!r} (use xy, yx)")
+        if len(set(fl.orientations)) != len(fl.orientations):
+            raise ConfigError(f"floor.orientations has duplicates: {list(fl.orientations)}")
+    if not _finite(cfg.speed) or cfg.speed <= 0:
+        raise ConfigError(f"speed must be a positive number of cm/s, got {cfg.speed!r}")
+    _check_list("pusher.mu", cfg.pusher.mu, minimum=0.0, strict=False)
+    g = cfg.grid
+    if g.coms_per_object < 1:
+        raise ConfigError(f"grid.coms_per_object must be >= 1, got {g.coms_per_object}")
+    _check_list("grid.izz_scales", g.izz_scales, minimum=0.0, strict=True)
+    if not _finite(g.com_margin_cm) or g.com_margin_cm < 0:
+        raise ConfigError(f"grid.com_margin_cm must be >= 0, got {g.com_margin_cm!r}")
+    if g.objects is not None:
+        if not g.objects:
+            raise ConfigError("grid.objects must not be empty (omit it to use every object)")
+        if len(set(g.objects)) != len(g.objects):
+            raise ConfigError(f"grid.objects has duplicates: {list(g.objects)}")
+    if cfg.workers < 1:
+        raise ConfigError(f"workers must be >= 1, got {cfg.workers}")
+    if cfg.execution.batch_size < 1:
+        raise ConfigError(f"execution.batch_size must be >= 1, got {cfg.execution.batch_size}")
+    if not cfg.execution.restart_timeout_s > 0:
+        raise ConfigError(
+            f"execution.restart_timeout_s must be > 0, got {cfg.execution.restart_timeout_s}"
+        )
+    if cfg.execution.max_retries < 0:
+        raise ConfigError(f"execution.max_retries must be >= 0, got {cfg.execution.max_retries}")
+    if cfg.seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
+    if not cfg.db.strip():
+        raise ConfigError("db must be a database URL or a file path")
+    return _validate_estimator(cfg.estimator)
+
+
+def _validate_estimator(est: Any) -> EstimatorSettings:
+    known = {f.name for f in dataclasses.fields(est)}
+    if "w" in known and (len(est.w) != 2 or not all(_finite(v) for v in est.w)):
+        raise ConfigError(f"estimator.w must be two finite numbers, got {list(est.w)}")
+    for key in ("theta_T", "C_bw"):
+        if key in known and (not _finite(getattr(est, key)) or getattr(est, key) < 0):
+            raise ConfigError(f"estimator.{key} must be >= 0, got {getattr(est, key)!r}")
+    if "n_push" in known and est.n_push < 1:
+        raise ConfigError(f"estimator.n_push must be >= 1, got {est.n_push}")
+    if "rotation_source" in known and est.rotation_source not in ROTATION_SOURCES:
+        raise ConfigError(
+            f"estimator.rotation_source must be one of {', '.join(ROTATION_SOURCES)}, "
+            f"got {est.rotation_source!r}"
+        )
+    try:
+        return estimator_settings(est)
+    except (TypeError, ValueError) as e:  # the settings' own checks, if any
+        raise ConfigError(f"estimator: {str(e).splitlines()[0]}") from None
+
+
+# --- database location ---------------------------------------------------------------------
+
+
+def sqlite_path(db: str) -> Path | None:
+    """The file behind `db` when it is SQLite (plain path or sqlite:/// URL); None otherwise
+    (another SQLAlchemy URL, or SQLite in memory)."""
+    if "://" not in db:
+        return Path(db).expanduser()
+    scheme, _, rest = db.partition("://")
+    if not scheme.startswith("sqlite"):
+        return None
+    rest = rest.split("?", 1)[0]
+    if rest in ("", "/", "/:memory:") or rest.startswith("/file:"):
+        return None
+    return Path(rest[1:]).expanduser() if rest.startswith("/") else Path(rest)
+
+
+def check_db_location(db: str) -> None:
+    """Fail early, leaving nothing behind, when an SQLite file could not be created or written.
+
+    Probes for real (permission bits lie for root and on read-only mounts): an existing file
+    is opened for update, otherwise a temporary file is created in the nearest existing parent.
+    """
+    path = sqlite_path(db)
+    if path is None:
+        return
+    if path.is_dir():
+        raise ConfigError(f"db: {str(path)!r} is a directory, not a database file")
+    if path.exists():
+        try:
+            with open(path, "r+b") as f:
+                head = f.read(16)
+        except OSError as e:
+            raise ConfigError(f"db: cannot write to {str(path)!r}: {e.strerror}") from None
+        if head and head != b"SQLite format 3\x00":
+            raise ConfigError(f"db: {str(path)!r} exists and is not an SQLite database")
+        return
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"db: cannot create {str(path)!r}: {str(parent)!r} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise ConfigError(
+            f"db: cannot create {str(path)!r}: {str(parent)!r} is not writable ({e.strerror})"
+        ) from None
+
+
+# --- objects from every config source -------------------------------------------------------
+
+
+def config_repository(sources: Sequence[Mapping[str, Any]]) -> Any:
+    """A Hydra config repository over the job's search path (`hydra.runtime.config_sources`):
+    the package's `conf/`, `--config-dir`, `hydra.searchpath` entries and the ConfigStore."""
+    from hydra._internal.config_repository import ConfigRepository
+    from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
+
+    csp = ConfigSearchPathImpl()
+    for s in sources:
+        csp.append(provider=str(s["provider"]), path=f"{s['schema']}://{s['path']}")
+    return ConfigRepository(csp)
+
+
+def available_objects(repo: Any) -> list[str]:
+    return list(repo.get_group_options(OBJECT_GROUP))
+
+
+def load_object_mapping(repo: Any, name: str) -> dict[str, Any]:
+    """Raw mapping of `object/<name>` from the first source that has it."""
+    res = repo.load_config(f"{OBJECT_GROUP}/{name}")
+    if res is None:
+        raise ConfigError(f"unknown object {name!r}")
+    node = res.config
+    if OmegaConf.is_config(node) and "defaults" in node:
+        node = OmegaConf.masked_copy(node, [k for k in node if k != "defaults"])
+    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+    if not isinstance(data, dict):
+        raise ConfigError(f"object {name!r}: config must be a mapping")
+    return data
+
+
+def load_objects(repo: Any, names: Sequence[str] | None) -> dict[str, Any]:
+    """`comexp.objects.ObjectDef` per name (all objects in the group when `names` is None)."""
+    from comexp.objects import ObjectDef
+
+    available = available_objects(repo)
+    if names is None:
+        if not available:
+            raise ConfigError("no objects found in the config group 'object'")
+        names = available
+    missing = [n for n in names if n not in available]
+    if missing:
+        shown = ", ".join(available[:30]) + (" ..." if len(available) > 30 else "")
+        raise ConfigError(f"unknown object {missing[0]!r} (available: {shown or 'none'})")
+    out = {}
+    for n in names:
+        try:
+            obj = ObjectDef.from_mapping(load_object_mapping(repo, n), default_name=n)
+        except ConfigError:
+            raise
+        except (TypeError, ValueError, KeyError) as e:
+            msg = str(e).splitlines()[0]
+            raise ConfigError(
+                msg if msg.startswith("object ") else f"object {n!r}: {msg}"
+            ) from None
+        if obj.name != n:
+            # users select objects by file name: a different `name` inside would be ambiguous
+            raise ConfigError(f"object {n!r}: its config says name {obj.name!r}")
+        out[n] = obj
+    return out
+
+
+# --- everything a job needs, checked ---------------------------------------------------------
+
+
+@dataclass
+class PreparedJob:
+    cfg: ExperimentConfig
+    estimator: EstimatorSettings
+    objects: dict[str, Any]
+
+
+def prepare_job(cfg: DictConfig) -> PreparedJob:
+    """Typed config + validation + objects + database location; raises `ConfigError`.
+
+    Objects are looked up in the job's config sources: `cfg.hydra` in a callback's view of the
+    config, `HydraConfig` inside the task function.
+    """
+    exp = to_experiment(cfg)
+    est = validate(exp)
+    sources = OmegaConf.select(cfg, "hydra.runtime.config_sources")
+    if sources is None:
+        from hydra.core.hydra_config import HydraConfig
+
+        sources = HydraConfig.get().runtime.config_sources
+    repo = config_repository(OmegaConf.to_container(sources, resolve=False))
+    objects = load_objects(repo, exp.grid.objects)
+    check_db_location(exp.db)
+    return PreparedJob(cfg=exp, estimator=est, objects=objects)

@@ -1,0 +1,220 @@
+"""The `comexp` command in a subprocess, as users run it: the installed config tree from any
+directory, one-line errors that write nothing, runs with a fake runner (no physics) that
+store, resume and survive Ctrl-C, and the two example commands of the brief.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+TESTS_DIR = str(Path(__file__).resolve().parent)
+FAKE = [
+    "execution.runner=test_workers:fake_run",
+    "execution.simulator_factory=test_workers:FakeSimulator",
+]
+SMALL = ["grid.coms_per_object=1", "grid.izz_scales=[1]", "pusher.mu=[1.0]"]
+
+
+def _command() -> list[str]:
+    script = Path(sys.executable).with_name("comexp")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "comexp.cli"]
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("HYDRA_FULL_ERROR", "RAY_ADDRESS") and not k.startswith("RAY_AUTH")
+    }
+    env.update(PYTHONPATH=TESTS_DIR, RAY_USAGE_STATS_ENABLED="0", **extra)
+    return env
+
+
+def comexp(cwd: Path, *args: str, timeout: float = 300, **env: str):
+    return subprocess.run(
+        [*_command(), *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=_env(**env),
+    )
+
+
+def rows(db: Path, sql: str) -> list[tuple]:
+    with sqlite3.connect(db) as c:
+        return c.execute(sql).fetchall()
+
+
+# --- the installed config tree ---------------------------------------------------------------
+
+
+def test_help_and_cfg_work_from_any_directory(tmp_path: Path) -> None:
+    r = comexp(tmp_path, "--help")
+    assert r.returncode == 0, r.stderr
+    assert "backend: mujoco, pybullet" in r.stdout and "floor: aniso, iso" in r.stdout
+    assert "l_shape" in r.stdout  # the object group ships with the package
+    r = comexp(tmp_path, "--cfg", "job", "floor=aniso", "speed=4")
+    assert r.returncode == 0, r.stderr
+    cfg = yaml.safe_load(r.stdout)
+    assert cfg["speed"] == 4.0 and cfg["floor"]["orientations"] == ["xy", "yx"]
+    assert cfg["estimator"]["theta_T"] == 1.0 and cfg["workers"] == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- bad input: one line, non-zero exit, nothing written ----------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["speed=-4"], "speed"),
+        (["speed=abc"], "speed"),
+        (["floor.mu=[-0.1]"], "floor.mu"),
+        (["pusher.mu=[-1]"], "pusher.mu"),
+        (["grid.objects=[no_such_object]"], "no_such_object"),
+        (["grid.coms_per_object=0"], "grid.coms_per_object"),
+        (["estimator.theta_T=-1"], "estimator.theta_T"),
+        (["db=/proc/comexp/results.db"], "db"),
+        (["backend=bullet3"], "backend"),
+        (["floor=wood"], "floor"),
+        (["-m", "speed=40,-4"], "speed"),
+        (["-m", "backend=pybullet,bullet3"], "backend"),
+    ],
+)
+def test_bad_input_is_one_line_and_writes_nothing(
+    tmp_path: Path, args: list[str], needle: str
+) -> None:
+    r = comexp(tmp_path, *args, "db=results/x.db" if "db=" not in args[0] else "seed=0")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("comexp: error: "), r.stderr
+    assert needle in lines[0]
+    assert "Traceback" not in r.stdout + r.stderr
+    assert list(tmp_path.iterdir()) == []  # no database, no Hydra output folder
+
+
+# --- runs with a fake runner ---------------------------------------------------------------------
+
+
+def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
+    conf = tmp_path / "myconf" / "object"
+    conf.mkdir(parents=True)
+    (conf / "my_tri.yaml").write_text("outline_cm: [[0, 0], [9, 0], [0, 6]]\nheight_cm: 2\n")
+    args = [
+        "--config-dir",
+        str(tmp_path / "myconf"),
+        "grid.objects=[my_tri,l_shape]",
+        "grid.izz_scales=[1]",
+        "floor.mu=[1.0]",
+        "pusher.mu=[1.0]",
+        "db=results/t.db",
+        *FAKE,
+    ]
+    r = comexp(tmp_path, *args, "grid.coms_per_object=2")
+    assert r.returncode == 0, r.stderr
+    db = tmp_path / "results" / "t.db"
+    assert rows(db, "select object, count(*) from episodes group by object") == [
+        ("l_shape", 2),
+        ("my_tri", 2),
+    ]
+    summaries = list((tmp_path / "results" / "runs").glob("*/summary.md"))
+    assert len(summaries) == 1 and "my_tri" in summaries[0].read_text()
+    # rerun with one more CoM per object: only the 2 new episodes run
+    r = comexp(tmp_path, *args, "grid.coms_per_object=3")
+    assert r.returncode == 0, r.stderr
+    assert "4 already stored, 2 to run" in r.stdout + r.stderr, r.stdout + r.stderr
+    assert rows(db, "select count(*), count(distinct sweep_id) from episodes") == [(6, 2)]
+    assert rows(db, "select count(*) from sweeps") == [(2,)]
+    # nothing left to do: no new sweep, no Ray
+    r = comexp(tmp_path, *args, "grid.coms_per_object=3")
+    assert r.returncode == 0 and "all 6 episodes already stored" in r.stdout
+    assert rows(db, "select count(*) from sweeps") == [(2,)]
+
+
+def test_aniso_multirun_example(tmp_path: Path) -> None:
+    r = comexp(tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", *FAKE)
+    assert r.returncode == 0, r.stderr
+    db = tmp_path / "results" / "a.db"
+    got = rows(
+        db,
+        "select speed_cm_s, mu_floor_x, mu_floor_y, count(*) from episodes "
+        "group by 1, 2, 3 order by 1, 2",
+    )
+    assert got == [
+        (4.0, 0.1, 1.0, 20),
+        (4.0, 1.0, 0.1, 20),
+        (40.0, 0.1, 1.0, 20),
+        (40.0, 1.0, 0.1, 20),
+    ]
+    assert rows(db, "select count(*) from sweeps") == [(2,)]
+    jobs = sorted(p.parent.name for p in (tmp_path / "results" / "multirun").glob("*/*/summary.md"))
+    assert len(jobs) == 2 and "speed40" in jobs[0] and "speed4.0" in jobs[1]
+
+
+def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
+    args = [*SMALL, "floor.mu=[1.0]", "db=results/i.db", "execution.batch_size=2", *FAKE]
+    proc = subprocess.Popen(
+        [*_command(), *args],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(FAKE_RUN_SLEEP_S="0.4"),
+    )
+    db = tmp_path / "results" / "i.db"
+    deadline = time.monotonic() + 120
+    stored = 0
+    while time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.3)
+        if db.exists():
+            try:
+                stored = rows(db, "select count(*) from episodes")[0][0]
+            except sqlite3.OperationalError:
+                continue  # schema still being created
+            if stored >= 4:
+                break
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    kept = rows(db, "select count(*) from episodes")[0][0]
+    assert 4 <= kept < 20  # what finished was stored, before the end
+    r = comexp(tmp_path, *args)
+    assert r.returncode == 0, r.stderr
+    assert f"{kept} already stored, {20 - kept} to run" in r.stdout + r.stderr
+    assert rows(db, "select count(*), count(distinct object) from episodes") == [(20, 20)]
+
+
+# --- the real thing ----------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
+    r = comexp(
+        tmp_path,
+        "backend=pybullet",
+        "floor=iso",
+        "speed=40",
+        *SMALL,
+        "floor.mu=[1.0]",
+        "db=results/smoke.db",
+        timeout=900,
+    )
+    assert r.returncode == 0, r.stderr
+    db = tmp_path / "results" / "smoke.db"
+    (n, ok, mean_err) = rows(
+        db, "select count(*), sum(status = 'ok'), avg(error_cm) from episodes"
+    )[0]
+    assert n == 20 and ok >= 15
+    assert mean_err < 3.0  # cm: an estimator that works at all beats the footprint size

@@ -1,0 +1,170 @@
+"""The config schema, its validation and object lookup, in-process (Hydra's compose API).
+
+The command-line side (one error line, exit code, nothing written) is in test_cli.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.errors import ConfigCompositionException
+
+from comexp.config import (
+    ConfigError,
+    check_db_location,
+    prepare_job,
+    sqlite_path,
+    to_experiment,
+)
+from comexp.episode import EstimatorSettings
+
+TRIANGLE = """\
+name: my_tri
+outline_cm: [[0, 0], [9, 0], [0, 6]]
+height_cm: 2.0
+"""
+
+
+def _compose(*overrides: str):
+    with initialize_config_module("comexp.conf", version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=True)
+
+
+def test_defaults_follow_the_public_contract() -> None:
+    exp = to_experiment(_compose())
+    assert exp.backend.name == "pybullet"
+    assert (exp.floor.name, exp.floor.mu, exp.floor.orientations) == ("iso", [0.1, 1.0], None)
+    assert exp.speed == 40.0 and exp.pusher.mu == [0.1, 1.0]
+    assert exp.grid.objects is None and exp.grid.coms_per_object == 10
+    assert exp.grid.izz_scales == [1.0, 10.0]
+    assert exp.workers == 2 and exp.ray.address is None
+    assert exp.db == "results/comexp.db" and exp.seed == 0
+    est = exp.estimator
+    assert (list(est.w), est.theta_T, est.C_bw, est.n_push, est.rotation_source) == (
+        [1.0, 0.5],
+        1.0,
+        10.0,
+        5,
+        "vision",
+    )
+
+
+def test_aniso_group_runs_both_orientations_by_default() -> None:
+    exp = to_experiment(_compose("floor=aniso"))
+    assert (exp.floor.name, exp.floor.mu, exp.floor.orientations) == (
+        "aniso",
+        [0.1, 1.0],
+        ["xy", "yx"],
+    )
+
+
+def test_every_estimator_setting_is_configurable() -> None:
+    job = prepare_job(_compose())
+    assert job.estimator == EstimatorSettings()  # defaults agree field by field
+    job = prepare_job(
+        _compose(
+            "estimator.theta_T=2.5", "estimator.C_bw=4", "estimator.w=[1,0]", "estimator.n_push=3"
+        )
+    )
+    assert (job.estimator.theta_T_deg, job.estimator.C_bw_px) == (2.5, 4.0)
+    assert job.estimator.w == (1.0, 0.0) and job.estimator.n_push == 3
+    cfg = _compose()
+    names = set(cfg.estimator)
+    assert len(names) == len(dataclasses.fields(EstimatorSettings))
+
+
+def test_wrong_types_are_rejected_while_composing() -> None:
+    for bad in ("speed=abc", "grid.coms_per_object=1.5", "workers=two", "nope=1"):
+        with pytest.raises(ConfigCompositionException):
+            _compose(bad)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "needle"),
+    [
+        (["speed=-4"], "speed"),
+        (["speed=0"], "speed"),
+        (["floor.mu=[-1]"], "floor.mu"),
+        (["floor.mu=[]"], "floor.mu"),
+        (["pusher.mu=[-0.5]"], "pusher.mu"),
+        (["pusher.mu=[1,1]"], "pusher.mu"),
+        (["grid.coms_per_object=0"], "grid.coms_per_object"),
+        (["grid.izz_scales=[0]"], "grid.izz_scales"),
+        (["grid.objects=[no_such_object]"], "no_such_object"),
+        (["grid.objects=[]"], "grid.objects"),
+        (["estimator.theta_T=-1"], "estimator.theta_T"),
+        (["estimator.C_bw=-1"], "estimator.C_bw"),
+        (["estimator.n_push=0"], "estimator.n_push"),
+        (["estimator.w=[1]"], "estimator.w"),
+        (["estimator.rotation_source=magic"], "estimator.rotation_source"),
+        (["floor=aniso", "floor.mu=[1]"], "floor.mu"),
+        (["floor=aniso", "floor.orientations=[zz]"], "floor.orientations"),
+        (["floor.orientations=[xy]"], "floor.orientations"),
+        (["workers=0"], "workers"),
+        (["seed=-1"], "seed"),
+        (["db=/proc/no/such.db"], "db"),
+    ],
+)
+def test_bad_values_are_rejected_with_one_line(overrides: list[str], needle: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        prepare_job(_compose(*overrides))
+    msg = str(info.value)
+    assert needle in msg and "\n" not in msg
+
+
+def test_objects_come_from_every_config_source(tmp_path: Path) -> None:
+    (tmp_path / "object").mkdir()
+    (tmp_path / "object" / "my_tri.yaml").write_text(TRIANGLE)
+    sp = f"hydra.searchpath=[file://{tmp_path}]"
+    job = prepare_job(_compose(sp, "grid.objects=[my_tri,l_shape]"))
+    assert list(job.objects) == ["my_tri", "l_shape"]
+    tri = job.objects["my_tri"]
+    assert abs(sum(x for x, _ in tri.outline_cm)) < 1e-9  # re-centred on its centroid
+    everything = prepare_job(_compose(sp)).objects
+    assert "my_tri" in everything and "l_shape" in everything
+    assert len(everything) == len(prepare_job(_compose()).objects) + 1
+
+
+def test_broken_user_objects_are_one_line_errors(tmp_path: Path) -> None:
+    (tmp_path / "object").mkdir()
+    (tmp_path / "object" / "renamed.yaml").write_text(TRIANGLE)
+    (tmp_path / "object" / "flat.yaml").write_text("outline_cm: [[0, 0], [1, 0], [2, 0]]\n")
+    sp = f"hydra.searchpath=[file://{tmp_path}]"
+    for name in ("renamed", "flat"):
+        with pytest.raises(ConfigError, match=name) as info:
+            prepare_job(_compose(sp, f"grid.objects=[{name}]"))
+        assert "\n" not in str(info.value)
+
+
+def test_sqlite_path_forms() -> None:
+    assert sqlite_path("results/a.db") == Path("results/a.db")
+    assert sqlite_path("sqlite:///results/a.db") == Path("results/a.db")
+    assert sqlite_path("sqlite+pysqlite:////tmp/a.db") == Path("/tmp/a.db")
+    assert sqlite_path("sqlite://") is None
+    assert sqlite_path("postgresql://u@h/db") is None
+
+
+def test_db_location_checks_create_nothing(tmp_path: Path) -> None:
+    check_db_location(str(tmp_path / "new" / "deeper" / "a.db"))
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ConfigError, match="directory"):
+        check_db_location(str(tmp_path))
+    (tmp_path / "notes.txt").write_text("not a database")
+    with pytest.raises(ConfigError, match="not an SQLite database"):
+        check_db_location(str(tmp_path / "notes.txt"))
+    with pytest.raises(ConfigError, match="cannot create"):
+        check_db_location("/proc/comexp/a.db")
+    check_db_location("postgresql://user@localhost/comexp")  # checked when connecting
+
+
+def test_shipped_experiment_reproduces_the_papers_aniso_setting() -> None:
+    exp = to_experiment(_compose("+experiment=paper_aniso", "speed=4"))
+    assert (exp.floor.name, exp.floor.mu, exp.floor.orientations) == (
+        "aniso",
+        [0.1, 1.0],
+        ["xy", "yx"],
+    )
+    assert exp.pusher.mu == [0.5] and exp.speed == 4.0

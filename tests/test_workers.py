@@ -1,0 +1,401 @@
+"""The Ray side with a cheap fake runner and simulator: every episode exactly once, dying
+workers retried, results streamed to the store before the end, interrupted runs keep results.
+
+The fakes live in this module and are named by dotted path (`test_workers:fake_run`), so the
+worker processes import them; the tests directory is put on their PYTHONPATH.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from comexp.episode import EpisodeResult, EpisodeSpec
+
+TESTS_DIR = str(Path(__file__).resolve().parent)
+RUNNER = "test_workers:fake_run"
+FACTORY = "test_workers:FakeSimulator"
+
+
+# --- fakes (imported by the workers) --------------------------------------------------------
+
+
+class FakeSimulator:
+    builds = 0
+
+    def __init__(self, backend: str) -> None:
+        if backend == "broken":
+            raise RuntimeError("engine failed to start")
+        self.backend = backend
+        self.closed = False
+        FakeSimulator.builds += 1
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def fake_run(
+    spec: EpisodeSpec,
+    sim: FakeSimulator,
+    *,
+    sleep_s: float | None = None,
+    marker_dir: str | None = None,
+) -> EpisodeResult:
+    """`object` selects the behaviour: `raise` raises, `die_once` kills the worker process
+    the first time (marker file), `die_always` every time; others succeed after `sleep_s`
+    (default: $FAKE_RUN_SLEEP_S, so command-line tests can slow it down)."""
+    assert not sim.closed
+    if sleep_s is None:
+        sleep_s = float(os.environ.get("FAKE_RUN_SLEEP_S", "0"))
+    if spec.object == "raise":
+        raise ValueError("boom")
+    if spec.object.startswith("die"):
+        marker = Path(marker_dir or "/nonexistent") / f"{spec.object}-{spec.com_index}"
+        if spec.object == "die_always" or not marker.exists():
+            marker.touch()
+            os._exit(1)
+    if sleep_s:
+        time.sleep(sleep_s)
+    import ray
+
+    node = ray.get_runtime_context().get_node_id() if ray.is_initialized() else "-"
+    return EpisodeResult(
+        spec=spec,
+        status="ok",
+        failure=None,
+        est_com_cm=spec.com_cm,
+        error_cm=0.1 * spec.com_index,
+        n_pushes=0,
+        pushes=(),
+        wall_s=sleep_s,
+        detail=f"pid {os.getpid()} node {node}",
+    )
+
+
+def make_specs(n: int, obj: str = "box", start: int = 0) -> list[EpisodeSpec]:
+    return [
+        EpisodeSpec(
+            backend="fake",
+            floor="iso",
+            mu_floor_x=1.0,
+            mu_floor_y=1.0,
+            mu_pusher=1.0,
+            speed_cm_s=40.0,
+            izz_scale=1.0,
+            object=obj,
+            outline_cm=((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)),
+            height_cm=2.0,
+            com_index=k,
+            com_cm=(0.01 * k, 0.0),
+        )
+        for k in range(start, start + n)
+    ]
+
+
+def ids(results: list[EpisodeResult]) -> list[tuple[str, int]]:
+    return sorted((r.spec.object, r.spec.com_index) for r in results)
+
+
+def spec_ids(specs: list[EpisodeSpec]) -> list[tuple[str, int]]:
+    return sorted((s.object, s.com_index) for s in specs)
+
+
+# --- the worker without Ray -------------------------------------------------------------------
+
+
+def test_worker_turns_exceptions_into_failed_results() -> None:
+    from comexp.workers.actor import EpisodeWorker
+
+    w = EpisodeWorker("fake", runner=RUNNER, simulator_factory=FACTORY)
+    specs = make_specs(2) + make_specs(1, "raise") + make_specs(2, start=2)
+    before = FakeSimulator.builds
+    out = w.run_batch(specs)
+    assert [r.status for r in out] == ["ok", "ok", "failed", "ok", "ok"]
+    assert out[2].failure == "error" and "ValueError: boom" in out[2].detail
+    assert FakeSimulator.builds == before + 1  # a fresh simulator after the exception
+    w.close()
+
+
+def test_import_dotted_forms() -> None:
+    from comexp.workers.actor import import_dotted
+
+    assert import_dotted("os.path:join") is os.path.join
+    assert import_dotted("os.path.join") is os.path.join
+    with pytest.raises(ValueError):
+        import_dotted("join")
+
+
+# --- the pool on a real (local) Ray -------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    import ray
+    from comexp.workers.pool import ensure_ray
+
+    if ray.is_initialized():
+        ray.shutdown()
+    saved = dict(os.environ)  # ensure_ray exports the workers' environment
+    ensure_ray(None, 2, env={"PYTHONPATH": TESTS_DIR})
+    yield
+    ray.shutdown()
+    os.environ.clear()
+    os.environ.update(saved)
+
+
+def _pool(**kw):
+    from comexp.workers.pool import EpisodePool
+
+    kw.setdefault("runner", RUNNER)
+    kw.setdefault("simulator_factory", FACTORY)
+    return EpisodePool("fake", 2, **kw)
+
+
+def test_pool_runs_every_episode_once_and_streams(ray_session) -> None:
+    specs = make_specs(40)
+    got: list[EpisodeResult] = []
+    yields = 0
+    with _pool(batch_size=4, runner_kwargs={"sleep_s": 0.005}) as pool:
+        for chunk in pool.run(specs):
+            yields += 1
+            got.extend(chunk)
+            assert len(chunk) <= 4
+    assert ids(got) == spec_ids(specs)
+    assert yields == 10  # one yield per batch: results stream back as batches finish
+    assert len({r.detail for r in got}) == 2  # both workers took part
+
+
+def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None:
+    specs = make_specs(10) + make_specs(1, "die_once") + make_specs(10, start=10)
+    got: list[EpisodeResult] = []
+    with _pool(batch_size=4, runner_kwargs={"marker_dir": str(tmp_path)}) as pool:
+        for chunk in pool.run(specs):
+            got.extend(chunk)
+        assert pool.stats.actor_restarts == 1
+        assert pool.stats.batch_retries == 1
+    assert ids(got) == spec_ids(specs)
+    assert all(r.status == "ok" for r in got)
+    assert (tmp_path / "die_once-0").exists()
+
+
+def test_pool_gives_up_on_an_episode_that_always_kills_its_worker(ray_session, tmp_path) -> None:
+    specs = make_specs(3) + make_specs(1, "die_always") + make_specs(3, start=3)
+    got: list[EpisodeResult] = []
+    with _pool(batch_size=4, max_retries=0, runner_kwargs={"marker_dir": str(tmp_path)}) as pool:
+        for chunk in pool.run(specs):
+            got.extend(chunk)
+        # batch dies once (no retry) -> split into 4 singles -> the poison one dies once more
+        assert pool.stats.actor_restarts == 2
+    assert len(got) == 7 and len(set(ids(got))) == 7
+    bad = [r for r in got if r.spec.object == "die_always"]
+    assert len(bad) == 1 and bad[0].status == "failed" and bad[0].failure == "worker_died"
+    assert sum(r.status == "ok" for r in got) == 6
+
+
+def test_pool_reports_workers_that_cannot_start(ray_session) -> None:
+    from comexp.workers.pool import EpisodePool, PoolError
+
+    pool = EpisodePool("broken", 1, runner=RUNNER, simulator_factory=FACTORY)
+    with pytest.raises(PoolError, match="engine failed to start"):
+        pool.start()
+
+
+def test_run_and_store_writes_while_running(ray_session) -> None:
+    from comexp.workers.pool import run_and_store
+
+    specs = make_specs(24)
+    calls: list[tuple[float, int]] = []
+
+    def store(results: list[EpisodeResult]) -> int:
+        calls.append((time.monotonic(), len(results)))
+        return len(results)
+
+    with _pool(batch_size=2, runner_kwargs={"sleep_s": 0.02}) as pool:
+        stats = run_and_store(pool, specs, store, flush_every=4, flush_interval_s=60)
+        end = time.monotonic()
+    assert stats.done == stats.stored == 24 and stats.failed == 0
+    assert sum(n for _, n in calls) == 24
+    assert len(calls) >= 5  # chunks of ~4, not one write at the end
+    assert calls[0][0] < end - 0.1
+
+
+# --- the driver loop without Ray --------------------------------------------------------------
+
+
+class _FakePool:
+    """Yields results of fake_run in batches; raises `exc` after `fail_after` batches."""
+
+    def __init__(self, fail_after: int | None = None, exc: BaseException | None = None):
+        self.fail_after = fail_after
+        self.exc = exc
+
+    def run(self, specs):
+        sim = FakeSimulator("x")
+        for i in range(0, len(specs), 3):
+            if self.fail_after is not None and i // 3 == self.fail_after:
+                raise self.exc
+            yield [fake_run(s, sim) for s in specs[i : i + 3]]
+
+
+def test_interrupted_run_keeps_what_finished() -> None:
+    from comexp.workers.pool import run_and_store
+
+    stored: list[EpisodeResult] = []
+
+    def store(results):
+        stored.extend(results)
+        return len(results)
+
+    specs = make_specs(30)
+    pool = _FakePool(fail_after=4, exc=KeyboardInterrupt())
+    with pytest.raises(KeyboardInterrupt):
+        run_and_store(pool, specs, store, flush_every=100, flush_interval_s=1e9)
+    assert ids(stored) == spec_ids(specs[:12])  # four finished batches, flushed on the way out
+
+
+def test_run_and_store_counts_failures() -> None:
+    from comexp.workers.pool import Progress, run_and_store
+
+    specs = make_specs(4) + make_specs(2, "raise")
+
+    class Pool:
+        def run(self, specs):
+            from comexp.workers.actor import EpisodeWorker
+
+            w = EpisodeWorker("fake", runner=RUNNER, simulator_factory=FACTORY)
+            yield w.run_batch(specs)
+
+    progress = Progress(len(specs), "t", tty=False, every_s=0)
+    stats = run_and_store(Pool(), specs, lambda rs: len(rs), progress=progress)
+    assert (stats.done, stats.failed, stats.failures["error"]) == (6, 2, 2)
+    assert "6/6 done, 2 failed" in progress.line(stats)
+
+
+# --- a real two-node cluster on loopback (slow) -----------------------------------------------
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.2", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_cli_joins_a_two_node_cluster_and_survives_losing_a_node(tmp_path: Path) -> None:
+    """Head on 127.0.0.2 and a worker node on 127.0.0.3 (Ray rewrites 127.0.0.1 to the
+    routable address, 127.0.0.x others it leaves alone). `comexp ray.address=...` uses both
+    nodes; killing the worker node mid-run costs retries, not episodes."""
+    import secrets
+    import shutil
+    import signal
+    import sqlite3
+    import subprocess
+    import sys
+    import tempfile
+
+    ray_bin = str(Path(sys.executable).with_name("ray"))
+    env = {
+        **os.environ,
+        "PYTHONPATH": TESTS_DIR,
+        "RAY_USAGE_STATS_ENABLED": "0",
+        "RAY_AUTH_MODE": "token",
+        "RAY_AUTH_TOKEN": secrets.token_hex(32),  # never written to ~/.ray
+        "FAKE_RUN_SLEEP_S": "0.25",
+    }
+    env.pop("RAY_ADDRESS", None)
+    port = _free_port()
+    address = f"127.0.0.2:{port}"
+    common = ["--num-cpus=1", "--disable-usage-stats", "--block"]
+    nodes: list[subprocess.Popen] = []
+    proc: subprocess.Popen | None = None
+    temp_dir = tempfile.mkdtemp(prefix="cxr-", dir="/tmp")  # short: unix socket paths
+
+    def start(*args: str) -> subprocess.Popen:
+        p = subprocess.Popen(
+            [ray_bin, "start", *args, *common],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,  # its own process group: killed as a whole below
+        )
+        nodes.append(p)
+        return p
+
+    def alive_nodes() -> int:
+        code = (
+            f"import ray; ray.init(address={address!r}, logging_level='ERROR');"
+            "print(sum(n['Alive'] for n in ray.nodes()))"
+        )
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+        return int(r.stdout.strip() or 0)
+
+    try:
+        start(
+            "--head",
+            "--node-ip-address=127.0.0.2",
+            f"--port={port}",
+            "--include-dashboard=false",
+            f"--temp-dir={temp_dir}",
+        )
+        time.sleep(3)
+        worker_node = start(f"--address={address}", "--node-ip-address=127.0.0.3")
+        deadline = time.monotonic() + 120
+        while alive_nodes() < 2:
+            assert time.monotonic() < deadline, "the two-node cluster did not come up"
+            time.sleep(2)
+        db = tmp_path / "c.db"
+        proc = subprocess.Popen(
+            [
+                str(Path(sys.executable).with_name("comexp")),
+                f"ray.address={address}",
+                "workers=2",
+                "grid.coms_per_object=2",
+                "grid.izz_scales=[1]",
+                "floor.mu=[1.0]",
+                "pusher.mu=[1.0]",
+                "execution.batch_size=2",
+                "execution.restart_timeout_s=20",
+                f"db={db}",
+                "execution.runner=test_workers:fake_run",
+                "execution.simulator_factory=test_workers:FakeSimulator",
+            ],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        killed = False
+        while proc.poll() is None and time.monotonic() < deadline + 300:
+            time.sleep(0.3)
+            if not killed and db.exists():
+                try:
+                    with sqlite3.connect(db) as c:
+                        details = [d for (d,) in c.execute("select detail from episodes")]
+                except sqlite3.OperationalError:
+                    continue
+                if len({d.split()[-1] for d in details}) == 2 and len(details) >= 8:
+                    os.killpg(worker_node.pid, signal.SIGKILL)  # the whole node, at once
+                    killed = True
+        out, _ = proc.communicate(timeout=60)
+        assert killed, out
+        assert proc.returncode == 0, out
+        assert "a worker died" in out  # noticed, and its batches retried
+        with sqlite3.connect(db) as c:
+            rows = c.execute("select status, detail from episodes").fetchall()
+        assert len(rows) == 40 and {s for s, _ in rows} == {"ok"}
+        assert len({d.split()[-1] for _, d in rows}) == 2  # both nodes did work
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        for p in nodes:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
+        shutil.rmtree(temp_dir, ignore_errors=True)
