@@ -9,7 +9,7 @@ export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: run test lint system-deps clean
+.PHONY: run test install lint system-deps lock clean
 
 # Headless MuJoCo rendering uses EGL on Mesa (llvmpipe, CPU only): Debian packages libegl1,
 # libegl-mesa0 and libgl1-mesa-dri. Installed here when missing and we are root; otherwise
@@ -24,11 +24,14 @@ system-deps:
 	  fi; \
 	fi
 
-$(STAMP): pyproject.toml
+# requirements.lock pins every package to the versions the test suite passed with (make lock).
+$(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -c requirements.lock -e '.[test]'
 	@touch $(STAMP)
+
+install: system-deps $(STAMP)
 
 run: system-deps $(STAMP)
 	$(VENV)/bin/comexp $(ARGS)
@@ -40,6 +43,9 @@ test: system-deps $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+
+lock: $(STAMP)
+	$(PY) -m pip freeze --exclude-editable | grep -v '^-e ' > requirements.lock
 
 clean:
 	rm -rf $(VENV) build *.egg-info

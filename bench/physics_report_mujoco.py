@@ -16,8 +16,8 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from comexp.backends.mujoco_sim import DEFAULT_CONTACT, NAIVE_CONTACT, MujocoSimulator
 
+from comexp.backends.mujoco_sim import DEFAULT_CONTACT, NAIVE_CONTACT, MujocoSimulator
 from comexp.geometry import box_object, signed_area
 from comexp.objects import builtin_objects, com_points, load_builtin, to_object_spec
 from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec

@@ -135,6 +135,7 @@ def test_import_dotted_forms() -> None:
 @pytest.fixture(scope="module")
 def ray_session():
     import ray
+
     from comexp.workers.pool import ensure_ray
 
     if ray.is_initialized():
