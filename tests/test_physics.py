@@ -190,12 +190,20 @@ THROUGH_COM_OBJECTS = {
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
 @pytest.mark.parametrize("name", sorted(THROUGH_COM_OBJECTS))
-def test_normal_push_through_com_does_not_rotate_any_shape(sim, name, mu_floor, speed):
+def test_normal_push_through_com_does_not_rotate_any_shape(request, sim, name, mu_floor, speed):
     """The built-in objects are low (1.5 cm) polygons, at a yaw off the floor's axes, with the
     CoM off the centroid and a sticky pusher: no spurious turn from contact-point layout,
     solver order or friction-cone shape (a rotation here becomes a wrong half-plane cut)."""
     from comexp.objects import load_builtin, to_object_spec
 
+    if sim.name == "pybullet":
+        # Known engine limitation, measured and documented in docs/physics_pybullet.md
+        # ("Open: pushes through the CoM of the built-in shapes rotate"): Bullet splits the
+        # weight over its floor contact points unevenly and order-dependently at breakaway,
+        # and its per-point second friction row preserves the spin. Two fixes were tried and
+        # not merged. Kept running (non-strict) so that a fix shows up as XPASS.
+        reason = "pybullet: spurious through-CoM rotation on general shapes (known, documented)"
+        request.node.add_marker(pytest.mark.xfail(reason=reason, strict=False))
     obj = load_builtin(name)
     com_cm = THROUGH_COM_OBJECTS[name]
     spec = to_object_spec(obj, com_cm, 1.0, 1.0)
