@@ -101,6 +101,10 @@ class MujocoContactSettings:
     pusher_geom: str = "capsule"  # "cylinder": MuJoCo's general convex collider (see header)
     pusher_solref: tuple[float, float] | None = (0.005, 1.0)  # None: `solref`
     cone: str = "elliptic"
+    # experimental, off by default (measured in docs/physics_mujoco.md, "Root cause 3"):
+    floor_margin_m: float = 0.0  # > 0: core contacts active up to this gap (smooth hover)
+    ring_min_points: int = 16  # support_layout "rings": points on the smallest ring
+    pusher_sleeve_kg: float = 0.0  # > 0: pusher geom on a free vertical slide of this mass
     max_renderers: int = 24  # depth renderers kept (one per object geometry)
 
 
@@ -171,9 +175,8 @@ def scene_mjcf(scene: SceneSpec, settings: SimSettings, contact: MujocoContactSe
         else ([], [])
     )
     r_sup = contact.support_radius_m
-    supports = [(x, y, r_sup) for x, y in core] + [
-        (x, y, r_sup + contact.rim_lift_m) for x, y in rim
-    ]
+    zc = r_sup + contact.floor_margin_m  # hovers `floor_margin_m` up: object frame at z = 0
+    supports = [(x, y, zc) for x, y in core] + [(x, y, r_sup + contact.rim_lift_m) for x, y in rim]
     for j, (x, y, z) in enumerate(supports):
         obj_geoms.append(
             f'<geom name="sup{j}" type="sphere" size="{r_sup!r}" pos="{_fmt(x, y, z)}" '
@@ -189,8 +192,9 @@ def scene_mjcf(scene: SceneSpec, settings: SimSettings, contact: MujocoContactSe
         # rim supports are frictionless (condim 1): they only stop a tilting object from
         # sinking, and friction there would undo the core's symmetry whenever they touch
         condim = 3 if j < n_core or not contact.rim_frictionless else 1
+        margin = f'margin="{contact.floor_margin_m!r}" ' if j < n_core else ""
         pairs.append(
-            f'<pair geom1="floor" geom2="{g}" condim="{condim}" '
+            f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}'
             f'friction="{_fmt(floor.mu_y, floor.mu_x, 0.0, 0.0, 0.0)}" {sref}/>'
         )
     psref = sref
@@ -207,6 +211,15 @@ def scene_mjcf(scene: SceneSpec, settings: SimSettings, contact: MujocoContactSe
     pz = pusher.clearance_m + pusher.length_m / 2.0
     extent = cam.far_m  # depth is metric when extent * znear/zfar are the camera's near/far
     flags = '<flag multiccd="enable"/>' if contact.multiccd else ""
+    sleeve_open = sleeve_close = ""
+    if contact.pusher_sleeve_kg > 0:
+        m_s = contact.pusher_sleeve_kg
+        sleeve_open = (
+            f'<body name="sleeve" gravcomp="1"><joint name="pusher_z" type="slide" '
+            f'axis="0 0 1" damping="{m_s * 200.0!r}"/>'
+            f'<inertial pos="0 0 0" mass="{m_s!r}" diaginertia="1e-6 1e-6 1e-6"/>'
+        )
+        sleeve_close = "</body>"
     return f"""<mujoco model="comexp_scene">
   <compiler angle="radian" inertiafromgeom="false"/>
   <option timestep="{settings.timestep_s / contact.substeps!r}" cone="{contact.cone}"
@@ -235,8 +248,10 @@ def scene_mjcf(scene: SceneSpec, settings: SimSettings, contact: MujocoContactSe
       <joint name="pusher_x" type="slide" axis="1 0 0"/>
       <joint name="pusher_y" type="slide" axis="0 1 0"/>
       <inertial pos="0 0 0" mass="{contact.pusher_mass_kg!r}" diaginertia="1 1 1"/>
+      {sleeve_open}
       <geom name="pusher" type="{contact.pusher_geom}"
             size="{_fmt(pusher.radius_m, pusher.length_m / 2)}" rgba="0.2 0.2 0.8 1"/>
+      {sleeve_close}
     </body>
   </worldbody>
   <contact>{"".join(pairs)}</contact>
@@ -290,6 +305,8 @@ def _support_points(
         g = np.stack([gx.ravel(), gy.ravel()], axis=1)
         g = g[shapely.contains_xy(inner, g[:, 0], g[:, 1])]
         return [(float(x), float(y)) for x, y in g] + corners, []
+    if contact.support_layout == "rings":
+        return _ring_core(inner, c, contact), corners
     core: list[tuple[float, float]] = []
     while True:
         n = int(math.ceil(max(x1 - x0, y1 - y0) / h)) + 1
@@ -333,6 +350,29 @@ def _support_points(
         [(float(x), float(y)) for x, y in g[far > 0.5 * h0]] if contact.rim_grid else []
     )
     return core, rim
+
+
+def _ring_core(inner, c: np.ndarray, contact: MujocoContactSettings) -> list[tuple[float, float]]:
+    """Floor core as concentric rings about the CoM, inside the largest disc that fits.
+
+    Why (docs/physics_mujoco.md, "Root cause 3"): a point-symmetric core keeps the contact
+    centre on the CoM, but unless its second moments are isotropic a pitch moment tilts the
+    object off the push direction, the load moves off the push line and a through-CoM push
+    turns. A disc of rings is (nearly) symmetric about every line through the CoM. Its cost:
+    the load sits inside the inscribed disc, so turning resistance and support extent shrink.
+    """
+    from shapely.geometry import Point
+
+    radius = float(inner.exterior.distance(Point(c)))
+    h = contact.support_spacing_m
+    n_rings = max(1, int(math.ceil(radius / h - 1e-9)))
+    pts = [(float(c[0]), float(c[1]))]
+    for k in range(1, n_rings + 1):
+        r = radius * k / n_rings
+        n = max(contact.ring_min_points, 8 * int(math.ceil(2 * math.pi * r / h / 8)))
+        a = np.arange(n) * 2 * math.pi / n + (k % 2) * math.pi / n
+        pts += [(float(c[0] + r * math.cos(t)), float(c[1] + r * math.sin(t))) for t in a]
+    return pts
 
 
 def _geometry_key(scene: SceneSpec, contact: MujocoContactSettings) -> tuple:

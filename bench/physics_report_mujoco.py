@@ -5,6 +5,7 @@ The optional dict overrides fields of MujocoContactSettings (parameter studies).
 
        .venv/bin/python bench/physics_report_mujoco.py objects   # the 20 built-in objects
        .venv/bin/python bench/physics_report_mujoco.py speed     # steps/s, wall time per push
+       .venv/bin/python bench/physics_report_mujoco.py phase ["{...}"]  # impact-phase spread
 """
 
 from __future__ import annotations
@@ -13,8 +14,11 @@ import ast
 import math
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 
+import mujoco
 import numpy as np
 
 from comexp.backends.mujoco_sim import DEFAULT_CONTACT, NAIVE_CONTACT, MujocoSimulator
@@ -178,7 +182,87 @@ def speed_report(sim: MujocoSimulator) -> None:
     print(f"\nbuild (same scene) {1e3 * (time.perf_counter() - t0) / 50:.2f} ms")
 
 
+@contextmanager
+def _per_step_probe(sim: MujocoSimulator, rec: dict[str, float]) -> Iterator[None]:
+    """Runs `mujoco.mj_step` one step at a time and records, over the push, the object's
+    highest lift above its rest height (mm), the longest time without any floor force (ms,
+    a ballistic hop) and the largest total floor normal force (N). Measurement only: the
+    chunked stepping of the backend is reproduced step by step (bit-identical physics)."""
+    orig = mujoco.mj_step
+    m = sim.model
+    floor = m.geom("floor").id
+    rec.update(z_mm=0.0, air_ms=0.0, floor_n=0.0)
+    air = [0.0]
+    f6 = np.zeros(6)
+
+    def step(m_: mujoco.MjModel, d_: mujoco.MjData, n: int = 1) -> None:
+        for _ in range(n):
+            orig(m_, d_)
+            fz = 0.0
+            for i in range(d_.ncon):
+                c = d_.contact[i]
+                if floor in (c.geom1, c.geom2) and c.efc_address >= 0:
+                    mujoco.mj_contactForce(m_, d_, i, f6)
+                    fz += f6[0]
+            air[0] = air[0] + m_.opt.timestep if fz == 0.0 else 0.0
+            rec["air_ms"] = max(rec["air_ms"], 1e3 * air[0])
+            rec["floor_n"] = max(rec["floor_n"], fz)
+            rec["z_mm"] = max(rec["z_mm"], 1e3 * float(d_.qpos[sim._obj_qadr + 2]))
+
+    mujoco.mj_step = step
+    try:
+        yield
+    finally:
+        mujoco.mj_step = orig
+
+
+def phase_report(sim: MujocoSimulator) -> None:
+    """The push of the contract's yaw-invariance test (box 8x5x3 cm, CoM (1.5, 0.8) cm, pusher
+    mu 0.5, 1 cm right of the CoM line, 40 cm/s, floor mu 1) at yaw 0, with the approach gap
+    shifted by a fraction of one step of pusher travel (0.4 mm): the object's physics is the
+    same up to where between two steps the pusher first touches. A spread here is a spread
+    the yaw test sees whenever float rounding moves first contact by one step."""
+    com = (0.015, 0.008)
+    obj = box_object(0.08, 0.05, 0.03, com_m=com, mu_pusher=0.5)
+    step_m = 0.4 * sim.settings.timestep_s
+    print(
+        "| start yaw deg | gap phase (steps) | rotation deg | max tilt deg | max lift mm "
+        "| longest hop ms | peak floor normal N |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    rots: dict[str, list[float]] = {"phase": [], "yaw": []}
+    cases = [(0.0, f) for f in (-0.01, 0.0, 0.01, 0.1, 0.25, 0.5, 0.75, 0.9)]
+    cases += [(y, 0.0) for y in (30.0, 45.0, 90.0, -160.0)]
+    for yaw_deg, frac in cases:
+        pose = Pose2D(0.0, 0.0, math.radians(yaw_deg))
+        sc = SceneSpec(FloorSpec(1.0, 1.0), obj, initial_pose=pose)
+        sim.build(sc)
+        contact = pose.to_world(np.array([com[0] + 0.01, -0.025]))
+        direction = pose.to_world(np.array([0.0, 1.0])) - np.array([pose.x_m, pose.y_m])
+        gap = 0.01 + frac * step_m
+        cmd = contact_push(contact, direction, 0.03, 0.4, sc.pusher.radius_m, gap)
+        rec: dict[str, float] = {}
+        with _per_step_probe(sim, rec):
+            o = sim.push(cmd)
+        (rots["phase"] if yaw_deg == 0.0 else rots["yaw"]).append(o.rotation_deg)
+        print(
+            f"| {yaw_deg:g} | {frac:+.2f} | {o.rotation_deg:+.3f} | {o.max_tilt_deg:.2f} | "
+            f"{rec['z_mm']:.3f} | {rec['air_ms']:.0f} | {rec['floor_n']:.1f} |"
+        )
+    ph, yw = np.array(rots["phase"]), np.array(rots["yaw"] + [rots["phase"][1]])
+    print(
+        f"\nspread over phase {ph.max() - ph.min():.2f} deg, over the 5 contract yaws "
+        f"{yw.max() - yw.min():.2f} deg (bound 1.5)"
+    )
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "phase":
+        kw = ast.literal_eval(sys.argv[2]) if len(sys.argv) > 2 else {}
+        sim = MujocoSimulator(contact=replace(DEFAULT_CONTACT, **kw))
+        phase_report(sim)
+        sim.close()
+        return
     if len(sys.argv) > 1 and sys.argv[1] in ("objects", "speed"):
         sim = MujocoSimulator()
         (objects if sys.argv[1] == "objects" else speed_report)(sim)
