@@ -195,6 +195,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
                 batch_size=exp.execution.batch_size,
                 max_retries=exp.execution.max_retries,
                 replace_timeout_s=exp.execution.restart_timeout_s,
+                episode_timeout_s=exp.execution.episode_timeout_s,
             )
             with pool:
                 stats = run_and_store(

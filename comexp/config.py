@@ -85,6 +85,9 @@ class ExecutionConfig:
     batch_size: int = 8  # episodes per Ray task: ~0.5 ms overhead vs ~100 ms per episode
     max_retries: int = 2  # a batch whose worker dies is retried this often, then split
     restart_timeout_s: float = 60.0  # a replacement worker not up by then is dropped
+    # An episode still running after this is failed with `failure="timeout"` and its worker
+    # carries on (episodes take ~0.1-0.3 s; quasi-static ones a few s): catches hangs only.
+    episode_timeout_s: float = 120.0
     runner: str = "comexp.episode:run_episode"
     simulator_factory: str = "comexp.simulator:make_simulator"
 
@@ -268,6 +271,10 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     if not cfg.execution.restart_timeout_s > 0:
         raise ConfigError(
             f"execution.restart_timeout_s must be > 0, got {cfg.execution.restart_timeout_s}"
+        )
+    if not (_finite(cfg.execution.episode_timeout_s) and cfg.execution.episode_timeout_s > 0):
+        raise ConfigError(
+            f"execution.episode_timeout_s must be > 0, got {cfg.execution.episode_timeout_s}"
         )
     if cfg.execution.max_retries < 0:
         raise ConfigError(f"execution.max_retries must be >= 0, got {cfg.execution.max_retries}")

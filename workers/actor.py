@@ -3,17 +3,28 @@
 Building an engine costs far more than one episode's scene, so the simulator is created once
 per actor and reused. The episode runner and the simulator factory are dotted paths (resolved
 inside the worker) so that tests can swap in cheap fakes without pickling functions.
+
+Time limit: an episode that runs longer than `episode_timeout_s` becomes a failed result with
+`failure="timeout"` and the worker carries on with a fresh simulator. Both engines step from
+Python, so a SIGALRM (delivered to the main thread, where Ray runs a plain actor's methods)
+interrupts a hanging episode between two engine calls. An engine stuck *inside* one C call
+never returns to Python; for that a watchdog thread ends the whole worker process after a
+grace period, which the pool treats like any dying worker (retry, then `worker_died`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib
+import math
 import os
+import signal
 import socket
+import sys
+import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import ray
@@ -52,8 +63,66 @@ def failed_result(spec: EpisodeSpec, failure: str, detail: str, wall_s: float) -
     )
 
 
+class EpisodeTimeout(BaseException):  # noqa: N818 - a signal, not an error class
+    """Raised by SIGALRM in the worker's main thread when an episode overruns its time limit.
+
+    A BaseException on purpose: `run_episode` turns every `Exception` into a failed result
+    with `failure="error"` (a sweep must survive any episode), which would hide the timeout.
+    """
+
+
+class _Watchdog:
+    """Ends the process when an episode is still running `grace_s` after its time limit.
+
+    The last resort for a hang inside one C call (SIGALRM handlers only run between Python
+    bytecodes). A daemon thread: it never keeps the worker alive on its own.
+    """
+
+    def __init__(self, grace_s: float) -> None:
+        self.grace_s = grace_s
+        self._cond = threading.Condition()
+        self._deadline: float | None = None
+        self._what = ""
+        self._thread = threading.Thread(target=self._run, name="episode-watchdog", daemon=True)
+        self._thread.start()
+
+    def arm(self, timeout_s: float, what: str) -> None:
+        with self._cond:
+            self._deadline = time.monotonic() + timeout_s + self.grace_s
+            self._what = what
+            self._cond.notify()
+
+    def disarm(self) -> None:
+        with self._cond:
+            self._deadline = None
+            self._cond.notify()
+
+    def _run(self) -> None:
+        with self._cond:
+            while True:
+                if self._deadline is None:
+                    self._cond.wait()
+                    continue
+                left = self._deadline - time.monotonic()
+                if left > 0:
+                    self._cond.wait(left)
+                    continue
+                print(
+                    f"comexp worker {os.getpid()}: {self._what} still running "
+                    f"{self.grace_s:g} s after its time limit; ending the worker process",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                os._exit(70)
+
+
 class EpisodeWorker:
-    """Plain class (testable without Ray); `RemoteEpisodeWorker` is its actor form."""
+    """Plain class (testable without Ray); `RemoteEpisodeWorker` is its actor form.
+
+    `episode_timeout_s` (None or <= 0: no limit) bounds each episode; `kill_grace_s` is how
+    long after that the watchdog waits before ending the process (default: the limit itself,
+    at least 10 s, so a slow but live step always gets the SIGALRM path first).
+    """
 
     def __init__(
         self,
@@ -61,36 +130,97 @@ class EpisodeWorker:
         runner: str = DEFAULT_RUNNER,
         simulator_factory: str = DEFAULT_SIMULATOR_FACTORY,
         runner_kwargs: dict[str, Any] | None = None,
+        episode_timeout_s: float | None = None,
+        kill_grace_s: float | None = None,
     ) -> None:
         self.backend = backend
         self._runner = import_dotted(runner)
         self._factory = import_dotted(simulator_factory)
         self._runner_kwargs = dict(runner_kwargs or {})
+        ok = episode_timeout_s is not None and math.isfinite(episode_timeout_s)
+        self.episode_timeout_s = episode_timeout_s if ok and episode_timeout_s > 0 else None
+        self._watchdog: _Watchdog | None = None
+        if self.episode_timeout_s is not None:
+            grace = kill_grace_s if kill_grace_s is not None else max(10.0, self.episode_timeout_s)
+            self._watchdog = _Watchdog(grace)
         self._sim: Any = self._factory(backend)
         self.episodes_run = 0
 
     def ready(self) -> dict[str, Any]:
-        """Returns once the simulator exists: lets the pool surface init errors up front."""
-        return {"pid": os.getpid(), "host": socket.gethostname(), "backend": self.backend}
+        """Returns once the simulator exists: lets the pool surface init errors up front, and
+        tells it where this worker runs (pid and node address, for logs and fault drills)."""
+        try:
+            node_ip = ray.util.get_node_ip_address() if ray.is_initialized() else "local"
+        except Exception:  # noqa: BLE001 - provenance only
+            node_ip = "?"
+        return {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "node_ip": node_ip,
+            "backend": self.backend,
+        }
 
     def run_batch(self, specs: Sequence[EpisodeSpec]) -> list[EpisodeResult]:
         return [self.run_one(s) for s in specs]
 
     def run_one(self, spec: EpisodeSpec) -> EpisodeResult:
-        """Never raises: an exception becomes a failed result (`failure="error"`), and the
-        simulator is rebuilt (lazily, by the next episode) so that a half-finished episode
-        cannot leak into the next one."""
+        """Never raises: an exception becomes a failed result (`failure="error"`), an overrun
+        one with `failure="timeout"`; either way the simulator is rebuilt (lazily, by the next
+        episode) so that a half-finished episode cannot leak into the next one. (Building the
+        simulator is not timed: it happens once per worker, and the pool bounds start-up.)"""
         t0 = time.perf_counter()
+        result: EpisodeResult | None = None
         try:
             if self._sim is None:
                 self._sim = self._factory(self.backend)
-            result = self._runner(spec, self._sim, **self._runner_kwargs)
+            with self._time_limit(spec):
+                result = self._runner(spec, self._sim, **self._runner_kwargs)
+        except EpisodeTimeout:
+            if result is None:  # else the alarm raced the return: keep the finished result
+                wall = time.perf_counter() - t0
+                detail = f"episode exceeded its time limit of {self.episode_timeout_s:g} s"
+                result = failed_result(spec, "timeout", detail, wall)
+                self._drop_simulator()
         except Exception as e:
             detail = f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=8)}"
             result = failed_result(spec, "error", detail, time.perf_counter() - t0)
             self._drop_simulator()
         self.episodes_run += 1
         return result
+
+    @contextlib.contextmanager
+    def _time_limit(self, spec: EpisodeSpec) -> Iterator[None]:
+        """SIGALRM after `episode_timeout_s` (main thread only: Python delivers signals
+        there) plus the watchdog; both are cancelled on the way out."""
+        limit = self.episode_timeout_s
+        if limit is None:
+            yield
+            return
+        assert self._watchdog is not None
+        what = f"episode {spec.object} com {spec.com_index}"
+        use_alarm = threading.current_thread() is threading.main_thread()
+        previous: Any = None
+        if use_alarm:
+
+            def on_alarm(signum: int, frame: Any) -> None:
+                raise EpisodeTimeout(what)
+
+            previous = signal.signal(signal.SIGALRM, on_alarm)
+        self._watchdog.arm(limit, what)
+        try:
+            if use_alarm:
+                signal.setitimer(signal.ITIMER_REAL, limit)
+            yield
+        finally:
+            # Nested so that an alarm firing right here (it fires once) still lets the
+            # handler be restored and the watchdog disarmed.
+            try:
+                if use_alarm:
+                    signal.setitimer(signal.ITIMER_REAL, 0)
+            finally:
+                if use_alarm:
+                    signal.signal(signal.SIGALRM, previous or signal.SIG_DFL)
+                self._watchdog.disarm()
 
     def _drop_simulator(self) -> None:
         sim, self._sim = self._sim, None

@@ -150,6 +150,7 @@ class _Slot:
     ready_ref: Any = None  # pending `ready()` call while starting
     since: float = 0.0
     pending: list[Any] = field(default_factory=list)  # run_batch refs, submission order
+    where: str = "?"  # node address of the current actor, once it is ready (provenance)
 
     @property
     def active(self) -> bool:
@@ -162,6 +163,9 @@ class PoolStats:
     batch_retries: int = 0
     worker_died_episodes: int = 0
     workers_dropped: int = 0
+    # Episodes whose results came back from each node (by node address): shows that a
+    # cluster run really used every node, without a database column for it.
+    episodes_by_node: collections.Counter[str] = field(default_factory=collections.Counter)
 
 
 class EpisodePool:
@@ -180,6 +184,8 @@ class EpisodePool:
         inflight_per_worker: int = 2,
         start_timeout_s: float = 600.0,
         replace_timeout_s: float = 60.0,
+        episode_timeout_s: float | None = None,
+        kill_grace_s: float | None = None,
     ) -> None:
         if workers < 1 or batch_size < 1 or max_retries < 0 or inflight_per_worker < 1:
             raise ValueError("workers, batch_size, inflight_per_worker >= 1; max_retries >= 0")
@@ -190,7 +196,15 @@ class EpisodePool:
         self.inflight_per_worker = inflight_per_worker
         self.start_timeout_s = start_timeout_s
         self.replace_timeout_s = replace_timeout_s
-        self._actor_args = (backend, runner, simulator_factory, runner_kwargs)
+        # episode_timeout_s: per-episode limit enforced in the worker (see workers.actor)
+        self._actor_args = (
+            backend,
+            runner,
+            simulator_factory,
+            runner_kwargs,
+            episode_timeout_s,
+            kill_grace_s,
+        )
         self._slots: list[_Slot] = []
         self.stats = PoolStats()
 
@@ -209,7 +223,9 @@ class EpisodePool:
             self.workers = cpus
         self._slots = [_Slot(self._new_actor()) for _ in range(self.workers)]
         try:
-            ray.get([s.actor.ready.remote() for s in self._slots], timeout=self.start_timeout_s)
+            infos = ray.get(
+                [s.actor.ready.remote() for s in self._slots], timeout=self.start_timeout_s
+            )
         except rex.GetTimeoutError:
             self.close()
             raise PoolError(
@@ -219,6 +235,14 @@ class EpisodePool:
         except rex.RayError as e:
             self.close()
             raise PoolError(f"workers failed to start: {_one_line(e)}") from None
+        for i, (slot, info) in enumerate(zip(self._slots, infos, strict=True)):
+            self._note_ready(i, slot, info)
+
+    def _note_ready(self, index: int, slot: _Slot, info: dict[str, Any]) -> None:
+        """Log where a worker runs: the pid and node are what an operator needs to find (or,
+        in a fault drill, kill) it."""
+        slot.where = str(info.get("node_ip", "?"))
+        log.info("worker %d ready: pid %s on node %s", index, info.get("pid"), slot.where)
 
     def close(self) -> None:
         for s in self._slots:
@@ -270,7 +294,7 @@ class EpisodePool:
             if ref in starting:
                 slot = starting.pop(ref)
                 try:
-                    ray.get(ref)
+                    info = ray.get(ref)
                 except _DEATH_ERRORS as e:
                     if isinstance(e, rex.RayActorError) and e.actor_init_failed:
                         raise PoolError(f"a worker failed to restart: {_one_line(e)}") from None
@@ -280,6 +304,8 @@ class EpisodePool:
                     self._replace(slot, starting)  # e.g. placed on a node that then died
                     continue
                 slot.ready_ref = None
+                if slot in self._slots:
+                    self._note_ready(self._slots.index(slot), slot, info)
                 continue
             slot, batch = inflight[ref]
             try:
@@ -304,6 +330,7 @@ class EpisodePool:
                     if finished is None:
                         lost.append(b)
                     else:
+                        self.stats.episodes_by_node[slot.where] += len(finished)
                         yield finished
                 slot.pending = []
                 log.warning(
@@ -323,10 +350,14 @@ class EpisodePool:
             inflight.pop(ref)
             slot.pending.remove(ref)
             consecutive_deaths = 0
+            self.stats.episodes_by_node[slot.where] += len(results)
             yield results
+        by_node = ", ".join(f"{n} {c}" for n, c in sorted(self.stats.episodes_by_node.items()))
+        log.info("episodes per node: %s", by_node or "none")
 
     def _replace(self, slot: _Slot, starting: dict[Any, _Slot]) -> None:
         _kill(slot.actor)
+        slot.where = "?"
         slot.actor = self._new_actor()
         slot.ready_ref = slot.actor.ready.remote()
         slot.since = time.monotonic()
