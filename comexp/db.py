@@ -163,6 +163,7 @@ class Episode(Base):
     estimator: Mapped[str] = mapped_column(Text)
     spec: Mapped[str] = mapped_column(Text)
     detail: Mapped[str] = mapped_column(Text, default="")
+    worker: Mapped[str] = mapped_column(String(128), default="")  # node_ip:pid that ran it
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_utcnow)
 
     __table_args__ = (
@@ -662,6 +663,7 @@ def _episode_row(sweep_id: int | None, key: str, r: EpisodeResult) -> dict[str, 
         "estimator": canonical_json(est),
         "spec": canonical_json(s),
         "detail": r.detail or "",
+        "worker": getattr(r, "worker", "") or "",
         "created_at": _utcnow(),
     }
 

@@ -80,6 +80,7 @@ class EpisodeResult:
     wall_s: float
     sim_time_s: float = 0.0
     detail: str = ""
+    worker: str = ""  # which worker ran it ("node_ip:pid"), set by the Ray actor
 
 
 def initial_yaw_rad(seed: int) -> float:

@@ -176,6 +176,7 @@ def test_add_results_is_idempotent_and_stores_everything(db: ResultsDB) -> None:
     )
     results = [make_result(com_index=i, error_cm=0.1 * (i + 1)) for i in range(3)]
     results.append(make_result(com_index=3, failure="tipped"))
+    results[0] = dataclasses.replace(results[0], worker="127.0.0.3:4242")
     assert db.add_results(sid, results) == 4
     # Twice, and with a duplicate inside the batch: nothing new but the one new episode.
     again = [*results, make_result(com_index=9), make_result(com_index=9)]
@@ -187,6 +188,7 @@ def test_add_results_is_idempotent_and_stores_everything(db: ResultsDB) -> None:
     first = rows[0]
     assert first["sweep_id"] == sid
     assert first["true_com_x_cm"] == 0.0 and first["est_com_x_cm"] == pytest.approx(0.1)
+    assert first["worker"] == "127.0.0.3:4242"
     assert first["w1"] == 1.0 and first["w2"] == 0.5 and first["rotation_source"] == "vision"
     assert '"theta_T_deg":1' in first["estimator"]
     failed = db.episodes(EpisodeFilter(status="failed"))

@@ -167,6 +167,8 @@ def test_pool_runs_every_episode_once_and_streams(ray_session) -> None:
     assert ids(got) == spec_ids(specs)
     assert yields == 10  # one yield per batch: results stream back as batches finish
     assert len({r.detail for r in got}) == 2  # both workers took part
+    assert len({r.worker for r in got}) == 2  # and each result says which one ran it
+    assert all(r.worker.count(":") == 1 for r in got)
 
 
 def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None:

@@ -15,6 +15,7 @@ grace period, which the pool treats like any dying worker (retry, then `worker_d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib
 import math
 import os
@@ -145,6 +146,8 @@ class EpisodeWorker:
             self._watchdog = _Watchdog(grace)
         self._sim: Any = self._factory(backend)
         self.episodes_run = 0
+        info = self.ready()
+        self._where = f"{info['node_ip']}:{info['pid']}"
 
     def ready(self) -> dict[str, Any]:
         """Returns once the simulator exists: lets the pool surface init errors up front, and
@@ -186,7 +189,7 @@ class EpisodeWorker:
             result = failed_result(spec, "error", detail, time.perf_counter() - t0)
             self._drop_simulator()
         self.episodes_run += 1
-        return result
+        return dataclasses.replace(result, worker=self._where)
 
     @contextlib.contextmanager
     def _time_limit(self, spec: EpisodeSpec) -> Iterator[None]:
