@@ -88,7 +88,11 @@ def pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def line_cuts_region(region: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
     """For each push line (P_i, N_i): does it pass through the region, i.e. leave region points
     strictly on both sides? (M,) bool. Vectorised over contacts x region points."""
-    side = cross2(N[:, None, :], region[None, :, :] - P[:, None, :])  # (M, n)
+    # cross2(N_i, r_j - P_i), written out on (M, n) planes: the same arithmetic without the
+    # (M, n, 2) temporaries, which dominated Algorithm 1's cost (docs/performance.md)
+    dx = region[None, :, 0] - P[:, 0, None]
+    dy = region[None, :, 1] - P[:, 1, None]
+    side = N[:, 0, None] * dy - N[:, 1, None] * dx  # (M, n)
     return (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
 
 
@@ -169,9 +173,11 @@ def choose_contact(
     """
     if len(P) == 0 or len(region) == 0:
         return None
-    valid = line_cuts_region(region, P, N)
-    if allowed is not None:
-        valid &= allowed
+    if allowed is None:
+        valid = line_cuts_region(region, P, N)
+    else:  # only the allowed push lines need the (contacts x region) test
+        valid = np.zeros(len(P), dtype=bool)
+        valid[allowed] = line_cuts_region(region, P[allowed], N[allowed])
     if not valid.any():
         return None
     s = score_contacts(region, P, N, settings, pixel_m)

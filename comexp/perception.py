@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import shapely
-from scipy.spatial import cKDTree
 
 from comexp.geometry import centroid as polygon_centroid
 from comexp.scene import CameraModel, DepthImage, Pose2D
@@ -87,10 +86,13 @@ def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarr
     """Pixels clearly above the floor; only the largest connected blob is kept (the object)."""
     depth = img.depth_m
     above = np.isfinite(depth) & (depth < floor_depth_m(img.camera) - min_height_m)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(above.astype(np.uint8), connectivity=8)
+    # Labels plus a bincount for the areas: cv2.connectedComponentsWithStats computes
+    # bounding boxes and centroids we do not need and costs ~8x more (docs/performance.md).
+    n, labels = cv2.connectedComponents(above.astype(np.uint8), connectivity=8)
     if n <= 1:
         return np.zeros_like(above)
-    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    areas = np.bincount(labels.ravel(), minlength=n)
+    biggest = 1 + int(np.argmax(areas[1:]))
     return labels == biggest
 
 
@@ -146,7 +148,8 @@ def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
     h, w = mask.shape
     if mask[0, :].any() or mask[-1, :].any() or mask[:, 0].any() or mask[:, -1].any():
         raise PerceptionError("the object touches the image border", "left_view")
-    v, u = np.nonzero(mask)
+    # same row-major order as np.nonzero(mask), ~9x cheaper on a 224 x 224 mask
+    v, u = np.divmod(np.flatnonzero(mask), w)
     depth = img.depth_m[v, u]
     points = cam.pixel_to_world(u, v, depth)[:, :2]
     top_depth = float(np.min(depth))
@@ -288,7 +291,9 @@ class PoseTracker:
     def __init__(self, first: Perception, first_obs: Observation) -> None:
         self.ref = first.outline_m
         self.ref_normals = first.outline_normals
-        self.tree = cKDTree(self.ref)
+        # Nearest reference points by brute force (a few hundred x a few hundred): cheaper
+        # than a k-d tree query at this size, and constant when the seed is far off.
+        self._ref_sq = np.einsum("ij,ij->i", self.ref, self.ref)
         self.pixel_m = first.pixel_m
         self.frame0 = first.frame_pose
         self.ref_axis, self.ref_aniso = _principal_angle(first_obs.points_m)
@@ -296,6 +301,15 @@ class PoseTracker:
             [first.frame_pose.x_m, first.frame_pose.y_m]
         )
         self.last = first.frame_pose
+
+    def _nearest(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to, and index of, the nearest reference point for each row of x.
+
+        The argmin uses |r|^2 - 2 x.r (|x|^2 is the same for every r); the distance is then
+        recomputed from the coordinate differences, as a k-d tree computes it."""
+        j = np.argmin(self._ref_sq[None, :] - 2.0 * (x @ self.ref.T), axis=1)
+        diff = x - self.ref[j]
+        return np.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]), j
 
     def _icp(self, q: np.ndarray, yaw0: float, t0: np.ndarray, max_iter: int = 40) -> PoseFit:
         """Fit world->frame transform x = R(phi) q + s; returns the frame's pose in the world."""
@@ -306,11 +320,12 @@ class PoseTracker:
         rms = math.inf
         for it in range(1, max_iter + 1):  # noqa: B007 - reported
             x = q @ _rot(phi).T + s
-            dist, j = self.tree.query(x)
-            keep = dist < max(gate, 3.0 * float(np.median(dist)))
-            n = self.ref_normals[j[keep]]
+            dist, j = self._nearest(x)
+            keep = dist < max(gate, 3.0 * _median(dist))
+            jk = j[keep]
+            n = self.ref_normals[jk]
             xk = x[keep]
-            r = np.sum(n * (xk - self.ref[j[keep]]), axis=1)
+            r = np.sum(n * (xk - self.ref[jk]), axis=1)
             jac = np.column_stack([n[:, 1] * xk[:, 0] - n[:, 0] * xk[:, 1], n[:, 0], n[:, 1]])
             delta, *_ = np.linalg.lstsq(jac, -r, rcond=None)
             # truncated residual over ALL points: dropped outliers count as a full gate each,
@@ -367,6 +382,16 @@ class PoseTracker:
             if f.rms_px < tol_px and abs(_wrap(f.pose.yaw_rad - a)) < 0.25 * a:
                 return n
         return 1
+
+
+def _median(d: np.ndarray) -> float:
+    """np.median of a 1-d float array without NaNs, by partial sort (~5x less overhead)."""
+    n = len(d)
+    k = n // 2
+    if n % 2:
+        return float(np.partition(d, k)[k])
+    p = np.partition(d, (k - 1, k))
+    return float(0.5 * (p[k - 1] + p[k]))
 
 
 def _wrap(a: float) -> float:
