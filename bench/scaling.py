@@ -1,0 +1,222 @@
+"""The same episodes on 1 and 2 workers through the real pool, measured in one run.
+
+    .venv/bin/python bench/scaling.py                       # pybullet, 200 episodes, 1 and 2
+    .venv/bin/python bench/scaling.py --backend mujoco --episodes 100 --workers 1 2
+
+The episodes are a fixed slice of the iso / 40 cm/s job (every 8th of its 1,600, so every
+object and condition is in it), run by `workers/pool.py` on a local Ray exactly as `comexp`
+runs them, the driver writing a throwaway SQLite database in a temp dir as results arrive.
+
+Per worker count: elapsed time of the run, speed-up over the first count, busy fraction
+(sum of the episodes' own wall_s / (workers x elapsed): the share of the workers' time spent
+inside episodes), and where the rest goes, from CPU time read in /proc for every process of
+the driver's tree: the workers (episodes + Ray's task handling), the driver (result handling,
+database writes, timed separately too) and Ray's own processes (gcs_server, raylet, agents),
+which compete with the workers for the same two cores. One-off costs are timed apart: Ray's
+start, the pool's start (actors + one simulator each), and the job set-up the CLI does
+(Hydra compose + validation + grid expansion of the 1,600 episodes + the resume query).
+
+Ratios measured within one run are the figures to quote: the machine is shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
+from episode_profile import job_specs, source_digest, strided  # noqa: E402
+from memory import CLK_TCK, cpu_seconds, descendants, proc_name  # noqa: E402
+
+from comexp.db import ResultsDB, episode_key  # noqa: E402
+from comexp.episode import EpisodeResult, EpisodeSpec  # noqa: E402
+
+
+@dataclass
+class Run:
+    workers: int
+    pool_start_s: float
+    elapsed_s: float
+    episode_wall_s: float  # sum of EpisodeResult.wall_s
+    db_write_s: float
+    cpu_workers_s: float
+    cpu_driver_s: float
+    cpu_ray_s: float
+    cpu_machine_s: float  # busy CPU seconds of the whole machine (all users) during the run
+    failed: int
+    errors: dict[str, float]  # episode key -> error_cm (None for failed), to compare runs
+    load: float
+
+    @property
+    def busy(self) -> float:
+        return self.episode_wall_s / (self.workers * self.elapsed_s)
+
+
+def _tree_cpu(root: int) -> dict[int, float]:
+    out = {}
+    for pid in descendants(root):
+        c = cpu_seconds(pid)
+        if c is not None:
+            out[pid] = c
+    return out
+
+
+def machine_cpu_s() -> tuple[float, float]:
+    """(busy, total) CPU seconds of the whole machine since boot, from /proc/stat: with the
+    tree's own CPU time this tells how much the other users of the machine took."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    idle = v[3] + v[4]  # idle + iowait
+    total = sum(v[:8])  # guest time is already inside user
+    return (total - idle) / CLK_TCK, total / CLK_TCK
+
+
+def _delta(before: dict[int, float], after: dict[int, float], pids: set[int]) -> float:
+    return sum(after.get(p, before.get(p, 0.0)) - before.get(p, 0.0) for p in pids)
+
+
+def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str) -> Run:
+    """One pool of `workers` actors runs `specs` into a fresh database."""
+    import ray
+
+    from comexp.workers.pool import EpisodePool, run_and_store
+
+    db = ResultsDB(os.path.join(tmp, f"scaling_{workers}.db"))
+    results: list[EpisodeResult] = []
+    db_time = 0.0
+    try:
+        sweep = db.start_sweep(command_line=f"bench/scaling.py workers={workers}")
+
+        def store(rs: list[EpisodeResult]) -> int:
+            nonlocal db_time
+            results.extend(rs)
+            t0 = time.perf_counter()
+            n = db.add_results(sweep, rs)
+            db_time += time.perf_counter() - t0
+            return n
+
+        pool = EpisodePool(backend, workers)
+        t0 = time.perf_counter()
+        pool.start()
+        pool_start = time.perf_counter() - t0
+        try:
+            wpids = {
+                ray.get(s.actor.ready.remote())["pid"]
+                for s in pool._slots  # noqa: SLF001 - bench: which processes are ours
+            }
+            me = os.getpid()
+            cpu0 = _tree_cpu(me)
+            ru0 = resource.getrusage(resource.RUSAGE_SELF)
+            m0 = machine_cpu_s()[0]
+            stats = run_and_store(pool, specs, store)
+            m1 = machine_cpu_s()[0]
+            ru1 = resource.getrusage(resource.RUSAGE_SELF)
+            cpu1 = _tree_cpu(me)
+        finally:
+            pool.close()
+    finally:
+        db.close()
+    others = (set(cpu0) | set(cpu1)) - wpids - {me}
+    return Run(
+        workers=workers,
+        pool_start_s=pool_start,
+        elapsed_s=stats.wall_s,
+        episode_wall_s=sum(r.wall_s for r in results),
+        db_write_s=db_time,
+        cpu_workers_s=_delta(cpu0, cpu1, wpids),
+        cpu_driver_s=(ru1.ru_utime + ru1.ru_stime) - (ru0.ru_utime + ru0.ru_stime),
+        cpu_ray_s=_delta(cpu0, cpu1, others),
+        cpu_machine_s=m1 - m0,
+        failed=stats.failed,
+        errors={episode_key(r.spec): r.error_cm for r in results},
+        load=os.getloadavg()[0],
+    )
+
+
+def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
+    """What `comexp` does before the first episode: Hydra + validation + grid, the resume
+    query against an empty database, and Ray's start."""
+    from comexp.workers.pool import ensure_ray
+
+    t0 = time.perf_counter()
+    specs = job_specs(backend)
+    t_grid = time.perf_counter() - t0
+    db = ResultsDB(os.path.join(tmp, "setup.db"))
+    try:
+        t0 = time.perf_counter()
+        db.stored_keys(episode_key(s) for s in specs)
+        t_resume = time.perf_counter() - t0
+    finally:
+        db.close()
+    t0 = time.perf_counter()
+    ensure_ray(None, cpus)
+    t_ray = time.perf_counter() - t0
+    return {"hydra_grid_s": t_grid, "resume_query_s": t_resume, "ray_start_s": t_ray}
+
+
+def report(backend: str, n: int, setup: dict[str, float], runs: list[Run]) -> None:
+    base = runs[0]
+    print(f"== scaling: {backend} (source {source_digest(backend)}), {n} episodes (iso/40 slice)")
+    print(
+        f"one-off: Hydra+validation+grid (1,600) {setup['hydra_grid_s']:.2f} s, "
+        f"resume query {setup['resume_query_s']:.2f} s, Ray start {setup['ray_start_s']:.2f} s"
+    )
+    hdr = (
+        f"{'workers':>7}{'load':>6}{'pool start':>11}{'elapsed':>9}{'ep/s':>7}{'speed-up':>9}"
+        f"{'busy':>7}{'ep ms':>7}{'cpu ms':>7}{'db write':>9}{'cpu wrk':>8}{'driver':>8}"
+        f"{'ray':>6}{'others':>8}"
+    )
+    print(hdr)
+    for r in runs:
+        cap = r.workers * r.elapsed_s  # worker-seconds available
+        ours = r.cpu_workers_s + r.cpu_driver_s + r.cpu_ray_s
+        others = max(r.cpu_machine_s - ours, 0.0)  # other users of the machine, in cores
+        print(
+            f"{r.workers:>7}{r.load:>6.2f}{r.pool_start_s:>10.1f}s{r.elapsed_s:>8.1f}s"
+            f"{n / r.elapsed_s:>7.2f}{base.elapsed_s / r.elapsed_s:>9.2f}"
+            f"{100 * r.busy:>6.1f}%{1e3 * r.episode_wall_s / n:>7.0f}"
+            f"{1e3 * r.cpu_workers_s / n:>7.0f}"
+            f"{100 * r.db_write_s / r.elapsed_s:>8.1f}%"
+            f"{100 * r.cpu_workers_s / cap:>7.0f}%{100 * r.cpu_driver_s / cap:>7.1f}%"
+            f"{100 * r.cpu_ray_s / cap:>5.1f}%{others / r.elapsed_s:>6.2f}cpu"
+        )
+    print(
+        "  busy = sum(episode wall_s) / (workers x elapsed); ep ms = mean episode wall_s;\n"
+        "  cpu ms = worker CPU time per episode (ep ms above it = waiting for a core);\n"
+        "  db write = driver time in db.add_results / elapsed; cpu wrk/driver/ray = CPU time of\n"
+        "  the workers / driver / Ray's processes over (workers x elapsed); others = CPU cores\n"
+        f"  used by everything else on the machine ({os.cpu_count()} cores) during the run"
+    )
+    for r in runs[1:]:
+        same = r.errors == base.errors
+        print(f"results of {r.workers} workers identical to {base.workers}: {same}")
+    print(f"failed episodes: {', '.join(f'{r.workers}w {r.failed}' for r in runs)}")
+    names = sorted({proc_name(p) for p in descendants(os.getpid())})
+    print(f"processes in the tree: {', '.join(names)}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--backend", choices=("pybullet", "mujoco"), default="pybullet")
+    ap.add_argument("--episodes", type=int, default=200)
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    a = ap.parse_args(argv)
+    specs = strided(job_specs(a.backend), a.episodes)
+    with tempfile.TemporaryDirectory(prefix="comexp-bench-scaling-") as tmp:
+        setup = setup_costs(a.backend, tmp, max(2, *a.workers))
+        runs = [run_once(a.backend, specs, w, tmp) for w in a.workers]
+    report(a.backend, len(specs), setup, runs)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
