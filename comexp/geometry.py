@@ -247,8 +247,11 @@ def prism_object(
     ixx = mass_kg * (jx / area + height_m**2 / 12.0)
     iyy = mass_kg * (jy / area + height_m**2 / 12.0)
     izz = mass_kg * (jx + jy) / area * izz_scale
-    if ixx + iyy < izz:
-        k = izz / (ixx + iyy)
+    # Raise to Ixx + Iyy = Izz (1 + 1e-6), not to exact equality: equality is lost to rounding in
+    # the sum, and MuJoCo then refuses the body ("inertia must satisfy A + B >= C").
+    min_sum = izz * (1.0 + 1e-6)
+    if ixx + iyy < min_sum:
+        k = min_sum / (ixx + iyy)
         ixx, iyy = ixx * k, iyy * k
     parts = tuple(_to_tuple(part) for part in convex_decomposition(p))
     return ObjectSpec(
