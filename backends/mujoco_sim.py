@@ -105,7 +105,9 @@ class MujocoContactSettings:
     floor_margin_m: float = 0.0  # > 0: core contacts active up to this gap (smooth hover)
     ring_min_points: int = 16  # support_layout "rings": points on the smallest ring
     pusher_sleeve_kg: float = 0.0  # > 0: pusher geom on a free vertical slide of this mass
-    max_renderers: int = 24  # depth renderers kept (one per object geometry)
+    # depth renderers kept (one per object geometry, ~80 MB each): the grid runs each object's
+    # episodes together, so a small cache loses nothing (docs/performance.md)
+    max_renderers: int = 2
 
 
 DEFAULT_CONTACT = MujocoContactSettings()
