@@ -73,6 +73,14 @@ class GridConfig:
 
 
 @dataclass
+class EpisodeConfig:
+    """The push protocol of every episode (see docs/method.md, "Episode runner")."""
+
+    push_length_cm: float = 3.0  # how far the pusher goes past the contact point (paper: 3 cm)
+    recenter_beyond_cm: float = 10.0  # put the object back at the centre beyond this; 0: never
+
+
+@dataclass
 class RayConfig:
     address: str | None = None  # None: start a local Ray; "auto" or host:port: join a cluster
     log_to_driver: bool = False  # worker stdout/stderr on the terminal (engines are chatty)
@@ -157,6 +165,7 @@ class ExperimentConfig:
     speed: float = 40.0  # cm/s
     pusher: PusherConfig = field(default_factory=PusherConfig)
     grid: GridConfig = field(default_factory=GridConfig)
+    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     workers: int = 2
     ray: RayConfig = field(default_factory=RayConfig)
@@ -259,6 +268,12 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     _check_list("grid.izz_scales", g.izz_scales, minimum=0.0, strict=True)
     if not _finite(g.com_margin_cm) or g.com_margin_cm < 0:
         raise ConfigError(f"grid.com_margin_cm must be >= 0, got {g.com_margin_cm!r}")
+    ep = cfg.episode
+    if not _finite(ep.push_length_cm) or ep.push_length_cm <= 0:
+        raise ConfigError(f"episode.push_length_cm must be > 0, got {ep.push_length_cm!r}")
+    if not _finite(ep.recenter_beyond_cm) or ep.recenter_beyond_cm < 0:
+        msg = f"episode.recenter_beyond_cm must be >= 0 (0: never), got {ep.recenter_beyond_cm!r}"
+        raise ConfigError(msg)
     if g.objects is not None:
         if not g.objects:
             raise ConfigError("grid.objects must not be empty (omit it to use every object)")

@@ -76,6 +76,8 @@ def expand_grid(
                 com_cm=(float(com[0]), float(com[1])),
                 estimator=est,
                 seed=episode_seed(cfg.seed, name, k),
+                push_length_cm=float(cfg.episode.push_length_cm),
+                recenter_beyond_cm=float(cfg.episode.recenter_beyond_cm),
             )
             for izz in cfg.grid.izz_scales:
                 for mu_x, mu_y in floors:

@@ -95,6 +95,8 @@ def test_wrong_types_are_rejected_while_composing() -> None:
         (["grid.izz_scales=[0]"], "grid.izz_scales"),
         (["grid.objects=[no_such_object]"], "no_such_object"),
         (["grid.objects=[]"], "grid.objects"),
+        (["episode.push_length_cm=0"], "episode.push_length_cm"),
+        (["episode.recenter_beyond_cm=-1"], "episode.recenter_beyond_cm"),
         (["estimator.theta_T=-1"], "estimator.theta_T"),
         (["estimator.C_bw=-1"], "estimator.C_bw"),
         (["estimator.n_push=0"], "estimator.n_push"),

@@ -108,3 +108,14 @@ def test_floor_conditions() -> None:
     assert floor_conditions("iso", [0.1, 1.0], None) == [(0.1, 0.1), (1.0, 1.0)]
     assert floor_conditions("aniso", [0.2, 0.7], ["xy", "yx"]) == [(0.2, 0.7), (0.7, 0.2)]
     assert floor_conditions("aniso", [0.2, 0.7], ["yx"]) == [(0.7, 0.2)]
+
+
+def test_episode_protocol_reaches_every_spec() -> None:
+    default = _specs(*SMALL, "floor.mu=[1.0]")
+    assert {(s.push_length_cm, s.recenter_beyond_cm) for s in default} == {(3.0, 10.0)}
+    changed = _specs(
+        *SMALL, "floor.mu=[1.0]", "episode.push_length_cm=2", "episode.recenter_beyond_cm=0"
+    )
+    assert {(s.push_length_cm, s.recenter_beyond_cm) for s in changed} == {(2.0, 0.0)}
+    # a different protocol is a different episode (never mixed up with stored ones)
+    assert {episode_key(s) for s in changed}.isdisjoint({episode_key(s) for s in default})
