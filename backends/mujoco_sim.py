@@ -16,8 +16,8 @@ Physics choices (measured and justified in docs/physics_mujoco.md):
 - The pusher is a capsule (its straight part is exactly the pusher cylinder): capsule-box
   contacts are analytic, cylinder contacts go through the general convex collider, whose
   errors depend on the object's yaw (a rotated box turned by up to 2.7 deg). Its contact with
-  the object is softer than the floor's (`pusher_solref`) so that the 40 cm/s impact does not
-  lift the object off the floor.
+  the object is softer than the floor's (`pusher_solref`), which lowers the 40 cm/s impact's
+  lift of the object off the floor (it still lifts 1-4 mm on the mu 1 floor: docs/physics.md).
 - The pusher is a heavy body on two slide joints whose position and velocity are set before
   every chunk of steps (kinematic): unlike a mocap body, the contact solver then sees the
   pusher's true velocity; being heavy, it coasts through a chunk at that velocity, so MuJoCo
@@ -642,7 +642,8 @@ class MujocoSimulator(Simulator):
         """The depth renderer for the current geometry, created on first use (physics-only
         users never open a GL context). A new GL renderer costs ~70 ms (context ~30 ms, mesh
         upload ~40 ms), so renderers are kept in a least-recently-used cache keyed by the
-        geometry: a study that interleaves its 20 objects pays that once per object."""
+        geometry (`max_renderers`); the grid runs each object's episodes together, so a small
+        cache pays it about once per object and job."""
         hit = self._renderers.get(self._render_key)
         if hit is not None:
             self._renderers.move_to_end(self._render_key)

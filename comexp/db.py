@@ -53,7 +53,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from comexp.episode import EpisodeResult, EpisodeSpec
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: episodes.worker, episodes.recenter_beyond_cm
 KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
@@ -122,7 +122,7 @@ class Sweep(Base):
 
 
 class Episode(Base):
-    """One CoM estimation. Column names are the public contract (design.md)."""
+    """One CoM estimation. Column names are the public contract (README, "Reading results")."""
 
     __tablename__ = "episodes"
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
@@ -145,13 +145,14 @@ class Episode(Base):
     status: Mapped[str] = mapped_column(String(16))  # ok | failed
     failure: Mapped[str | None] = mapped_column(String(64), nullable=True)
     wall_s: Mapped[float] = mapped_column(Float)
-    # Contract columns come first (in design.md order), so `SELECT *` reads like the brief.
+    # Contract columns come first (in the README's order), so `SELECT *` reads like the contract.
     episode_key: Mapped[str] = mapped_column(String(64), nullable=False)
     sim_time_s: Mapped[float] = mapped_column(Float, default=0.0)
     seed: Mapped[int] = mapped_column(Integer, default=0)
     mass_kg: Mapped[float] = mapped_column(Float)
     height_cm: Mapped[float] = mapped_column(Float)
     push_length_cm: Mapped[float] = mapped_column(Float)
+    recenter_beyond_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
     w1: Mapped[float | None] = mapped_column(Float, nullable=True)
     w2: Mapped[float | None] = mapped_column(Float, nullable=True)
     theta_T_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -654,6 +655,7 @@ def _episode_row(sweep_id: int | None, key: str, r: EpisodeResult) -> dict[str, 
         "mass_kg": float(s.mass_kg),
         "height_cm": float(s.height_cm),
         "push_length_cm": float(s.push_length_cm),
+        "recenter_beyond_cm": _opt_float(getattr(s, "recenter_beyond_cm", None)),
         "w1": float(w[0]) if len(w) > 0 else None,
         "w2": float(w[1]) if len(w) > 1 else None,
         "theta_T_deg": _opt_float(getattr(est, "theta_T_deg", None)),

@@ -29,7 +29,9 @@ from comexp.db import EpisodeFilter, ResultsDB
 CONDITION_FIELDS = ("backend", "floor", "mu_floor_x", "mu_floor_y", "mu_pusher", "speed_cm_s")
 STAT_COLUMNS = ("n", "mean", "std", "max", "min")
 ALL_OBJECTS = "all"
-_EPISODE_COLUMNS = (*CONDITION_FIELDS, "estimator", "object", "status", "failure", "error_cm")
+# Columns that make a different method or protocol: rows differing in them are never pooled.
+VARIANT_FIELDS = ("estimator", "push_length_cm", "recenter_beyond_cm")
+_EPISODE_COLUMNS = (*CONDITION_FIELDS, *VARIANT_FIELDS, "object", "status", "failure", "error_cm")
 
 
 def natural_key(name: str) -> list[Any]:
@@ -130,10 +132,15 @@ def condition_tables(db: ResultsDB, flt: EpisodeFilter | None = None) -> list[Co
 
 def tables_from_rows(rows: Iterable[dict[str, Any]]) -> list[ConditionTable]:
     rows = list(rows)
-    variants = {r["estimator"] for r in rows}
+
+    def variant(r: dict[str, Any]) -> str:
+        est, push, recenter = (r.get(f) for f in VARIANT_FIELDS)
+        return f"{est} push_length_cm={push} recenter_beyond_cm={recenter}"
+
+    variants = {variant(r) for r in rows}
     groups: dict[Condition, list[dict[str, Any]]] = defaultdict(list)
     for r in rows:
-        est = r["estimator"] if len(variants) > 1 else ""
+        est = variant(r) if len(variants) > 1 else ""
         cond = Condition(*(r[f] for f in CONDITION_FIELDS), estimator=est)
         groups[cond].append(r)
     return [_table(cond, groups[cond]) for cond in sorted(groups)]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import itertools
 import math
@@ -158,6 +159,22 @@ def test_estimator_variants_are_not_pooled(tmp_path: Path) -> None:
         assert len({t.condition.slug() for t in tables}) == 2
         (one,) = condition_tables(db, EpisodeFilter(rotation_source="oracle"))
         assert one.condition.estimator == "" and one.overall.mean == 3.0
+
+
+def test_protocol_variants_are_not_pooled(tmp_path: Path) -> None:
+    """Episodes with another push length or re-centring rule are another experiment."""
+    with ResultsDB(tmp_path / "p.db") as db:
+        base = make_result(error_cm=1.0)
+        longer = dataclasses.replace(
+            make_result(error_cm=3.0), spec=dataclasses.replace(base.spec, push_length_cm=5.0)
+        )
+        never = dataclasses.replace(
+            make_result(error_cm=2.0), spec=dataclasses.replace(base.spec, recenter_beyond_cm=0.0)
+        )
+        assert db.add_results(None, [base, longer, never]) == 3
+        tables = condition_tables(db)
+        assert sorted(t.overall.mean for t in tables) == [1.0, 2.0, 3.0]
+        assert {r["recenter_beyond_cm"] for r in db.episodes()} == {0.0, 10.0}
 
 
 def test_paper_form_puts_speeds_side_by_side(study_db: ResultsDB) -> None:
