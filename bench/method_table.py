@@ -71,7 +71,10 @@ def main(argv: list[str] | None = None) -> int:
                     errs, rot_err, fails, walls = [], [], defaultdict(int), []
                     for obj in objs:
                         for k, com in enumerate(com_points(obj, args.coms)):
-                            spec = EpisodeSpec(
+                            spec = EpisodeSpec.for_object(
+                                obj,
+                                k,
+                                com,
                                 backend=backend,
                                 floor="iso",
                                 mu_floor_x=args.mu_floor,
@@ -79,11 +82,6 @@ def main(argv: list[str] | None = None) -> int:
                                 mu_pusher=args.mu_pusher,
                                 speed_cm_s=speed,
                                 izz_scale=args.izz,
-                                object=obj.name,
-                                outline_cm=obj.outline_cm,
-                                height_cm=obj.height_cm,
-                                com_index=k,
-                                com_cm=com,
                                 seed=k,
                                 estimator=settings,
                             )

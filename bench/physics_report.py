@@ -120,7 +120,10 @@ def objects_at_rest(sim: Simulator) -> list[tuple[str, ...]]:
     rows = []
     for obj in builtin_objects():
         for k, com in enumerate(com_points(obj, 2)):
-            spec = EpisodeSpec(
+            spec = EpisodeSpec.for_object(
+                obj,
+                k,
+                com,
                 backend=sim.name,
                 floor="iso",
                 mu_floor_x=1.0,
@@ -128,11 +131,6 @@ def objects_at_rest(sim: Simulator) -> list[tuple[str, ...]]:
                 mu_pusher=0.5,
                 speed_cm_s=4.0,
                 izz_scale=1.0,
-                object=obj.name,
-                outline_cm=obj.outline_cm,
-                height_cm=obj.height_cm,
-                com_index=k,
-                com_cm=com,
                 seed=k,
             )
             scene = build_scene(spec)

@@ -33,7 +33,10 @@ def main() -> None:
         errors, recentred = [], 0
         for obj in builtin_objects():
             for k, com in enumerate(com_points(obj, args.coms)):
-                spec = EpisodeSpec(
+                spec = EpisodeSpec.for_object(
+                    obj,
+                    k,
+                    com,
                     backend=args.backend,
                     floor="iso",
                     mu_floor_x=0.1,
@@ -41,11 +44,6 @@ def main() -> None:
                     mu_pusher=1.0,
                     speed_cm_s=40.0,
                     izz_scale=1.0,
-                    object=obj.name,
-                    outline_cm=tuple(map(tuple, obj.outline_cm)),
-                    height_cm=obj.height_cm,
-                    com_index=k,
-                    com_cm=com,
                     seed=k,
                 )
                 r = run_episode(dataclasses.replace(spec, recenter_beyond_cm=recenter), sim)

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -51,6 +53,22 @@ class EpisodeSpec:
     # an experimenter would; 0 disables. A 40 cm/s push slides an object ~11 cm on the mu 0.1
     # floor, so without this about 15% of 5-push episodes there leave the 0.6 m floor.
     recenter_beyond_cm: float = 10.0
+
+    @classmethod
+    def for_object(
+        cls, obj: Any, com_index: int, com_cm: Sequence[float], **conditions: Any
+    ) -> EpisodeSpec:
+        """The episode of CoM `com_index` (at `com_cm`) of an object definition (anything with
+        `name`, `outline_cm`, `height_cm`, e.g. `comexp.objects.ObjectDef`); `conditions` are the
+        remaining fields (backend, floor, frictions, speed, Izz, ...)."""
+        return cls(
+            object=obj.name,
+            outline_cm=tuple((float(x), float(y)) for x, y in obj.outline_cm),
+            height_cm=float(obj.height_cm),
+            com_index=com_index,
+            com_cm=(float(com_cm[0]), float(com_cm[1])),
+            **conditions,
+        )
 
 
 @dataclass(frozen=True)

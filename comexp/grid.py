@@ -63,17 +63,11 @@ def expand_grid(
         coms = com_fn(obj, n_com, base_seed=cfg.seed, margin_cm=cfg.grid.com_margin_cm)
         if len(coms) != n_com:
             raise ValueError(f"{name}: expected {n_com} CoMs, got {len(coms)}")
-        outline = tuple((float(x), float(y)) for x, y in obj.outline_cm)
         for k, com in enumerate(coms):
             common: dict[str, Any] = dict(
                 backend=cfg.backend.name,
                 floor=cfg.floor.name,
                 speed_cm_s=float(cfg.speed),
-                object=name,
-                outline_cm=outline,
-                height_cm=float(obj.height_cm),
-                com_index=k,
-                com_cm=(float(com[0]), float(com[1])),
                 estimator=est,
                 seed=episode_seed(cfg.seed, name, k),
                 push_length_cm=float(cfg.episode.push_length_cm),
@@ -83,7 +77,10 @@ def expand_grid(
                 for mu_x, mu_y in floors:
                     for mu_p in cfg.pusher.mu:
                         specs.append(
-                            EpisodeSpec(
+                            EpisodeSpec.for_object(
+                                obj,
+                                k,
+                                com,
                                 mu_floor_x=mu_x,
                                 mu_floor_y=mu_y,
                                 mu_pusher=float(mu_p),

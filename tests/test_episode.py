@@ -195,3 +195,25 @@ def test_end_to_end_dynamic_pushing(backend):
     errors = [r.error_cm for r in results]
     assert np.mean(errors) < 1.0, errors
     assert max(errors) < 2.0, errors
+
+
+def test_spec_for_object_copies_the_object_definition():
+    from comexp.objects import load_builtin
+
+    obj = load_builtin("l_shape")
+    spec = EpisodeSpec.for_object(
+        obj,
+        3,
+        (0.5, -0.25),
+        backend="pybullet",
+        floor="iso",
+        mu_floor_x=1.0,
+        mu_floor_y=1.0,
+        mu_pusher=0.5,
+        speed_cm_s=40,
+        izz_scale=1.0,
+    )
+    assert (spec.object, spec.com_index, spec.com_cm) == ("l_shape", 3, (0.5, -0.25))
+    assert spec.outline_cm == tuple(tuple(p) for p in obj.outline_cm)
+    assert spec.height_cm == obj.height_cm
+    hash(spec)  # frozen and hashable: plain tuples of floats, no lists

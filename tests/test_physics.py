@@ -337,7 +337,10 @@ def test_many_sided_object_at_rest_settles_at_once(sim):
     from comexp.objects import builtin_objects, com_points
 
     obj = next(o for o in builtin_objects() if o.name == "ellipse_12x7")
-    spec = EpisodeSpec(
+    spec = EpisodeSpec.for_object(
+        obj,
+        0,
+        com_points(obj, 2)[0],
         backend=sim.name,
         floor="iso",
         mu_floor_x=1.0,
@@ -345,11 +348,6 @@ def test_many_sided_object_at_rest_settles_at_once(sim):
         mu_pusher=0.5,
         speed_cm_s=4.0,
         izz_scale=1.0,
-        object=obj.name,
-        outline_cm=obj.outline_cm,
-        height_cm=obj.height_cm,
-        com_index=0,
-        com_cm=com_points(obj, 2)[0],
     )
     sim.build(build_scene(spec))
     out = sim.push(PushCommand((0.2, 0.2), (1.0, 0.0), 0.01, 0.04))

@@ -163,8 +163,8 @@ class PoolStats:
     batch_retries: int = 0
     worker_died_episodes: int = 0
     workers_dropped: int = 0
-    # Episodes whose results came back from each node (by node address): shows that a
-    # cluster run really used every node, without a database column for it.
+    # Episodes whose results came back from each node (by node address), for the end-of-run
+    # log line; each stored episode also records its worker (`episodes.worker`).
     episodes_by_node: collections.Counter[str] = field(default_factory=collections.Counter)
 
 
