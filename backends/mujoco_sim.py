@@ -41,19 +41,18 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 
+from comexp.backends.floor_friction import FootprintFriction, FrictionSettings  # noqa: E402
 from comexp.scene import (  # noqa: E402
     GRAVITY_M_S2,
     DepthImage,
     ObjectState,
-    PushCommand,
     SceneSpec,
     SimSettings,
 )
 from comexp.simulator import (  # noqa: E402
-    PushOutcome,
+    FLOOR_FRICTION_CHOICES,
     PushStatus,
     Simulator,
-    classify_state,
 )
 
 _PARK_XY_M = (3.0, 3.0)  # far outside the floor and the camera frustum
@@ -150,7 +149,12 @@ def _axis_aligned_rect(poly: tuple[tuple[float, float], ...]) -> tuple[float, ..
     )
 
 
-def scene_mjcf(scene: SceneSpec, settings: SimSettings, contact: MujocoContactSettings) -> str:
+def scene_mjcf(
+    scene: SceneSpec,
+    settings: SimSettings,
+    contact: MujocoContactSettings,
+    floor_friction: str = "model",
+) -> str:
     """The MJCF of a scene. Deterministic text: equal scenes give equal strings (cache key)."""
     obj, floor, pusher, cam = scene.obj, scene.floor, scene.pusher, scene.camera
     h = obj.height_m
@@ -194,6 +198,8 @@ def scene_mjcf(scene: SceneSpec, settings: SimSettings, contact: MujocoContactSe
         # rim supports are frictionless (condim 1): they only stop a tilting object from
         # sinking, and friction there would undo the core's symmetry whenever they touch
         condim = 3 if j < n_core or not contact.rim_frictionless else 1
+        if floor_friction == "model":
+            condim = 1  # normal support only: the footprint model supplies the friction
         margin = f'margin="{contact.floor_margin_m!r}" ' if j < n_core else ""
         pairs.append(
             f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}'
@@ -405,19 +411,6 @@ def _tilt_deg(q: np.ndarray) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
-def _point_polygon_distance(p: np.ndarray, poly: np.ndarray) -> float:
-    """Distance from a point to a closed polygon; 0 inside (even-odd rule)."""
-    a, b = poly, np.roll(poly, -1, axis=0)
-    ab = b - a
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-    d = float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
-    crosses = (a[:, 1] > p[1]) != (b[:, 1] > p[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = a[:, 0] + (p[1] - a[:, 1]) * ab[:, 0] / ab[:, 1]
-    inside = int(np.sum(crosses & (p[0] < x_at))) % 2 == 1
-    return 0.0 if inside else d
-
-
 @dataclass
 class _Renderer:
     """The depth renderer of one object geometry (its own GL context and uploaded meshes)."""
@@ -431,11 +424,20 @@ class _Renderer:
 
 class MujocoSimulator(Simulator):
     name = "mujoco"
+    check_every_steps = 10  # MuJoCo runs this many steps in C between two protocol checks
 
     def __init__(
-        self, settings: SimSettings | None = None, contact: MujocoContactSettings | None = None
+        self,
+        settings: SimSettings | None = None,
+        contact: MujocoContactSettings | None = None,
+        floor_friction: str = "model",
     ) -> None:
         super().__init__(settings)
+        if floor_friction not in FLOOR_FRICTION_CHOICES:
+            raise ValueError(f"floor_friction must be one of {FLOOR_FRICTION_CHOICES}")
+        self.floor_friction = floor_friction
+        self._fric: FootprintFriction | None = None
+        self._pushed = False
         self.contact = contact or DEFAULT_CONTACT
         self._xml: str | None = None
         self.model: mujoco.MjModel | None = None
@@ -446,7 +448,7 @@ class MujocoSimulator(Simulator):
 
     # --- scene ---------------------------------------------------------------------------
     def build(self, scene: SceneSpec) -> None:
-        xml = scene_mjcf(scene, self.settings, self.contact)
+        xml = scene_mjcf(scene, self.settings, self.contact, self.floor_friction)
         if xml != self._xml:  # compiling is deterministic, so reuse == recompile bitwise
             self.model = mujoco.MjModel.from_xml_string(xml)
             self.data = mujoco.MjData(self.model)
@@ -458,7 +460,16 @@ class MujocoSimulator(Simulator):
             self._px_vadr = int(m.jnt_dofadr[m.joint("pusher_x").id])
             self._pusher_body = m.body("pusher").id
             self._pusher_geom = m.geom("pusher").id
+            self._obj_body = m.body("object").id
         m, d = self.model, self.data
+        fl = scene.floor
+        self._fric = (
+            FootprintFriction(scene.obj, fl.mu_x, fl.mu_y, scene.pusher)
+            if self.floor_friction == "model"
+            else None
+        )
+        self._com_local = np.array([scene.obj.com_m[0], scene.obj.com_m[1], scene.obj.height_m / 2])
+        self._pushed = False
         mujoco.mj_resetData(m, d)
         pose = scene.initial_pose
         q = self._obj_qadr
@@ -467,7 +478,11 @@ class MujocoSimulator(Simulator):
         self._set_pusher(_PARK_XY_M, (0.0, 0.0))
         mujoco.mj_forward(m, d)
         self._scene = scene
-        self.step(self.contact.build_settle_s)  # "resting on the floor": contacts at equilibrium
+        # "resting on the floor": contacts at equilibrium
+        n_settle = round(self.contact.build_settle_s / self.settings.timestep_s)
+        if n_settle:
+            mujoco.mj_step(m, d, n_settle * self.contact.substeps)
+            self._set_pusher(_PARK_XY_M, (0.0, 0.0))
         d.time = 0.0
         self._outline = np.asarray(scene.obj.outline_m, dtype=float)
         self._warnings0 = self._warning_count()
@@ -506,15 +521,6 @@ class MujocoSimulator(Simulator):
         d.qvel[v : v + 3] = linear_m_s
         d.qvel[v + 3 : v + 6] = rot.reshape(3, 3).T @ np.asarray(angular_rad_s, dtype=float)
 
-    def step(self, duration_s: float) -> None:
-        m, d = self._require()
-        n = max(0, round(duration_s / self.settings.timestep_s))
-        hold = (float(d.qpos[self._px_qadr]), float(d.qpos[self._px_qadr + 1]))
-        self._set_pusher(hold, (0.0, 0.0))
-        if n:
-            mujoco.mj_step(m, d, n * self.contact.substeps)
-        self._set_pusher(hold, (0.0, 0.0))
-
     # --- pusher --------------------------------------------------------------------------
     def _set_pusher(self, xy: tuple[float, float], vel_xy: tuple[float, float]) -> None:
         d = self.data
@@ -528,93 +534,76 @@ class MujocoSimulator(Simulator):
         d = self.data
         return sum(int(d.warning[w].number) for w in _UNSTABLE_WARNINGS)
 
-    def _health(self) -> PushStatus | None:
-        if self._warning_count() > self._warnings0:
-            return PushStatus.SIM_UNSTABLE
-        return classify_state(
-            self.object_state(), self._outline, self._scene.camera.model(), self.settings
-        )
-
-    def push(self, cmd: PushCommand) -> PushOutcome:
+    # --- protocol primitives (comexp.simulator.Simulator.push) ------------------------------
+    def _place_pusher(self, xy) -> None:
         m, d = self._require()
-        s = self.settings
-        dt = s.timestep_s
-        pose_before = self.true_pose()
-        start = np.asarray(cmd.start_xy_m, dtype=float)
-        direction = np.asarray(cmd.direction_xy, dtype=float)
-        outline_w = pose_before.to_world(self._outline)
-        clear = _point_polygon_distance(start, outline_w) > self._scene.pusher.radius_m
+        self._set_pusher((float(xy[0]), float(xy[1])), (0.0, 0.0))
+        mujoco.mj_forward(m, d)
 
-        def outcome(status: PushStatus, steps: int, lag: float, tilt: float, contact: bool):
-            self._set_pusher(_PARK_XY_M, (0.0, 0.0))
-            mujoco.mj_forward(m, d)
-            return PushOutcome(
-                status=status,
-                pose_before=pose_before,
-                pose_after=self.true_pose(),
-                sim_time_s=steps * dt,
-                steps=steps,
-                contact_made=contact,
-                max_pusher_lag_m=lag,
-                max_tilt_deg=tilt,
-            )
+    def _park_xy(self) -> tuple[float, float]:
+        return _PARK_XY_M
 
-        if not clear:
-            return outcome(PushStatus.PATH_BLOCKED, 0, 0.0, _tilt_deg(self._obj_quat()), False)
+    def _engine_failure(self) -> PushStatus | None:
+        return PushStatus.SIM_UNSTABLE if self._warning_count() > self._warnings0 else None
 
-        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
+    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+        """Runs of steps at one constant pusher velocity go to MuJoCo as one `mj_step(m, d, n)`:
+        the pusher is heavy enough to coast through them at its set velocity (the object's
+        reaction changes it by < 1e-7 m/s per chunk); before every run it is put back exactly
+        on the commanded path. With `trace` set, steps go one at a time."""
+        m, d = self._require()
+        dt = self.settings.timestep_s
         sub = self.contact.substeps
-        lag = tilt = 0.0
-        contact = False
-        steps = 0
-        # move: the pusher is heavy enough to coast at its commanded velocity through a chunk
-        # of steps (the object's reaction changes its speed by < 1e-7 m/s per chunk), so
-        # MuJoCo runs whole chunks without Python in between; before every chunk the pusher is
-        # put back exactly on the commanded path, after it the integrated position is compared
-        # with the path (tracking lag). The last step covers the remaining partial distance.
-        v_full = direction * cmd.speed_m_s
-        k = 0
-        while k < n_move:
-            n = min(_CHECK_EVERY, n_move - 1 - k) if k < n_move - 1 else 1
-            s0 = min(k * cmd.speed_m_s * dt, cmd.travel_m)
-            s1 = min((k + n) * cmd.speed_m_s * dt, cmd.travel_m)
-            vel = v_full if k < n_move - 1 else direction * ((s1 - s0) / dt)
-            self._set_pusher(tuple(start + direction * s0), tuple(vel))
-            mujoco.mj_step(m, d, n * sub)
-            k += n
-            steps += n
-            lag = max(lag, float(np.linalg.norm(self._pusher_xy() - (start + direction * s1))))
+        prev = self._pusher_xy()
+        targets = np.asarray(targets, dtype=float)
+        vel = np.diff(np.vstack([prev[None, :], targets]), axis=0) / dt
+        touched = False
+        tilt = 0.0
+        i = 0
+        n_all = len(targets)
+        while i < n_all:
+            j = i + 1
+            if self._fric is None and self.trace is None:
+                while j < n_all and np.allclose(vel[j], vel[i], rtol=1e-9, atol=1e-12):
+                    j += 1
+            start = prev if i == 0 else targets[i - 1]
+            self._set_pusher(
+                (float(start[0]), float(start[1])), (float(vel[i, 0]), float(vel[i, 1]))
+            )
+            if self._fric is not None:
+                self._apply_floor_friction()
+            mujoco.mj_step(m, d, (j - i) * sub)
+            self._pushed = self._pusher_touching()
+            touched = touched or self._pushed
             tilt = max(tilt, _tilt_deg(self._obj_quat()))
-            contact = contact or self._pusher_touching()
-            bad = self._health()
-            if bad is not None:
-                return outcome(bad, steps, lag, tilt, contact)
-        end = tuple(start + direction * cmd.travel_m)
-        # settle: the pusher stays where it stopped while the object comes to rest; the
-        # object counts as calm when it is below the speed limits at every chunk boundary
-        # for settle_hold_s
-        hold_chunks = max(1, math.ceil(s.settle_hold_s / (dt * _CHECK_EVERY) - 1e-9))
-        calm = 0
-        max_settle = round(s.max_settle_s / dt)
-        while steps < n_move + max_settle:
-            self._set_pusher(end, (0.0, 0.0))
-            mujoco.mj_step(m, d, _CHECK_EVERY * sub)
-            steps += _CHECK_EVERY
-            tilt = max(tilt, _tilt_deg(self._obj_quat()))
-            contact = contact or self._pusher_touching()
-            vv = d.qvel[self._obj_vadr : self._obj_vadr + 6]
-            if math.hypot(vv[0], vv[1], vv[2]) < s.settle_speed_m_s and (
-                math.sqrt(vv[3] ** 2 + vv[4] ** 2 + vv[5] ** 2) < s.settle_spin_rad_s
-            ):
-                calm += 1
-            else:
-                calm = 0
-            bad = self._health()
-            if bad is not None:
-                return outcome(bad, steps, lag, tilt, contact)
-            if calm >= hold_chunks:
-                return outcome(PushStatus.OK, steps, lag, tilt, contact)
-        return outcome(PushStatus.NOT_SETTLED, steps, lag, tilt, contact)
+            if self.trace is not None:
+                self.trace.append(self.object_state())
+            i = j
+        last = targets[-1] if n_all else prev
+        self._set_pusher(
+            (float(last[0]), float(last[1])),
+            (float(vel[-1, 0]), float(vel[-1, 1])) if n_all else (0.0, 0.0),
+        )
+        return touched, tilt
+
+    def _apply_floor_friction(self) -> None:
+        """`floor_friction=model`: the floor's friction for this step from the footprint model
+        (backends/floor_friction.py), as a force at the floor under the CoM (`xfrc_applied`
+        acts at the CoM: the lever of the floor point adds its moment); MuJoCo's floor contacts
+        are normal-only (condim 1), so its soft friction cone cannot raise the normal force."""
+        d = self.data
+        q, v = self._obj_qadr, self._obj_vadr
+        rot = np.empty(9)
+        mujoco.mju_quat2Mat(rot, d.qpos[q + 3 : q + 7])
+        rot = rot.reshape(3, 3)
+        w = rot @ d.qvel[v + 3 : v + 6]  # free joint: angular velocity is in the body frame
+        v_com = d.qvel[v : v + 3] + np.cross(w, rot @ self._com_local)
+        yaw = math.atan2(rot[1, 0], rot[0, 0])
+        dt = self.settings.timestep_s
+        imp = self._fric.impulse(np.array([v_com[0], v_com[1], w[2]]), yaw, dt, self._pushed)
+        f = imp / dt
+        z = float(d.xipos[self._obj_body, 2])  # CoM height above the floor
+        d.xfrc_applied[self._obj_body] = (f[0], f[1], 0.0, z * f[1], -z * f[0], f[2])
 
     def _obj_quat(self) -> np.ndarray:
         q = self._obj_qadr
@@ -671,5 +660,10 @@ class MujocoSimulator(Simulator):
         self.model = self.data = None
         self._xml = None
 
+
+# The backend's revision: bump when a change changes results (it is part of episode identity).
+PHYSICS_VERSION = "mujoco-2"  # 2: the shared push protocol (retract, one settle rule)
+ENGINE_DISTRIBUTION = "mujoco"
+PHYSICS_SETTINGS = (DEFAULT_CONTACT, FrictionSettings())
 
 __all__ = ["DEFAULT_CONTACT", "NAIVE_CONTACT", "MujocoContactSettings", "MujocoSimulator"]

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import math
 import os
 import shutil
 import tempfile
@@ -36,28 +35,17 @@ from collections.abc import Sequence
 import numpy as np
 import pybullet as pb
 
+from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
 from comexp.scene import (
     GRAVITY_M_S2,
     DepthImage,
     ObjectSpec,
     ObjectState,
-    Pose2D,
-    PushCommand,
     SceneSpec,
     SimSettings,
 )
-from comexp.simulator import PushOutcome, PushStatus, Simulator, classify_state
+from comexp.simulator import FLOOR_FRICTION_CHOICES, PARK_XY_M, Simulator
 
-# Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
-# pusher's top (half-width seen there ~0.29 m), and unreachable by an object still in view.
-_PARK_XY_M = (0.0, 0.5)
-# Retract distance after a push (m) before teleporting to the park position, and its speed.
-_RETRACT_M = 0.006
-_RETRACT_SPEED_M_S = 0.1
-# Geometric clearance (m) between pusher surface and object footprint to count as "clear".
-_CLEAR_M = 5e-4
-# How often (steps) the shared failure classifier runs while stepping.
-_CHECK_EVERY = 5
 # Pusher mass (kg): 500x the object's, so contact impulses change its velocity by < 0.2 %
 # of the object's change within a step; its velocity is re-imposed before every step.
 _PUSHER_MASS_KG = 100.0
@@ -140,20 +128,15 @@ def _pixel_centred_projection(proj: Sequence[float], width_px: int, height_px: i
     return m
 
 
-def _point_polygon_distance(pt: np.ndarray, poly: np.ndarray) -> float:
-    """Signed distance from a point to a simple polygon's boundary (negative inside)."""
-    a = poly
-    b = np.roll(poly, -1, axis=0)
-    ab = b - a
-    t = np.clip(np.einsum("ij,ij->i", pt - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-    d = float(np.min(np.linalg.norm(a + t[:, None] * ab - pt, axis=1)))
-    # even-odd ray cast for inside
-    x, y = pt
-    inside = False
-    for (x1, y1), (x2, y2) in zip(a, b, strict=True):
-        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
-            inside = not inside
-    return -d if inside else d
+# The backend's revision: bump when a change changes results (it is part of episode identity).
+PHYSICS_VERSION = "pybullet-2"  # 2: the shared push protocol (retract, one settle rule)
+ENGINE_DISTRIBUTION = "pybullet"
+# every setting of this backend that shapes its physics (module constants, solver settings)
+PHYSICS_SETTINGS = {
+    "pusher_mass_kg": _PUSHER_MASS_KG,
+    "solver_iterations": 50,
+    "footprint": FrictionSettings(),
+}
 
 
 class PybulletSimulator(Simulator):
@@ -161,8 +144,13 @@ class PybulletSimulator(Simulator):
 
     name = "pybullet"
 
-    def __init__(self, settings: SimSettings | None = None) -> None:
+    def __init__(self, settings: SimSettings | None = None, floor_friction: str = "model") -> None:
         super().__init__(settings)
+        if floor_friction not in FLOOR_FRICTION_CHOICES:
+            raise ValueError(f"floor_friction must be one of {FLOOR_FRICTION_CHOICES}")
+        self.floor_friction = floor_friction
+        self._fric: FootprintFriction | None = None
+        self._pushed = False
         self._cid = pb.connect(pb.DIRECT)
         self._dir = tempfile.mkdtemp(prefix="comexp_pybullet_")
         self._scene: SceneSpec | None = None
@@ -229,13 +217,16 @@ class PybulletSimulator(Simulator):
         self._floor = pb.loadURDF(
             floor_path,
             useFixedBase=True,
-            useMaximalCoordinates=fl.isotropic,
+            useMaximalCoordinates=fl.isotropic or self.floor_friction == "model",
             flags=flags,
             physicsClientId=c,
         )
         mu_max = max(fl.mu_x, fl.mu_y)
         floor_dyn: dict[str, object] = {}
-        if not fl.isotropic:  # never set on iso floors: see docs/physics_pybullet.md
+        model = self.floor_friction == "model"
+        if model:
+            mu_max = 0.0  # the footprint model supplies the floor's friction (_step_once)
+        elif not fl.isotropic:  # never set on iso floors: see docs/physics_pybullet.md
             floor_dyn["anisotropicFriction"] = [fl.mu_x / mu_max, fl.mu_y / mu_max, 1.0]
         pb.changeDynamics(
             self._floor,
@@ -255,7 +246,7 @@ class PybulletSimulator(Simulator):
         )
         self._pusher = pb.loadURDF(
             pusher_path,
-            basePosition=[_PARK_XY_M[0], _PARK_XY_M[1], self._pusher_z],
+            basePosition=[PARK_XY_M[0], PARK_XY_M[1], self._pusher_z],
             useMaximalCoordinates=True,
             flags=flags,
             physicsClientId=c,
@@ -273,7 +264,7 @@ class PybulletSimulator(Simulator):
             physicsClientId=c,
         )
         pb.setCollisionFilterPair(self._pusher, self._floor, -1, -1, 0, physicsClientId=c)
-        self._teleport_pusher(_PARK_XY_M)
+        self._teleport_pusher(PARK_XY_M)
 
         obj = scene.obj
         self._com_local = np.array([obj.com_m[0], obj.com_m[1], obj.height_m / 2.0])
@@ -300,6 +291,12 @@ class PybulletSimulator(Simulator):
             physicsClientId=c,
         )
         self._scene = scene
+        self._pushed = False
+        self._fric = (
+            FootprintFriction(obj, fl.mu_x, fl.mu_y, scene.pusher)
+            if self.floor_friction == "model"
+            else None
+        )
         cam = scene.camera
         self._view = pb.computeViewMatrix(
             cameraEyePosition=[0.0, 0.0, cam.height_m],
@@ -341,7 +338,33 @@ class PybulletSimulator(Simulator):
             pb.WORLD_FRAME,
             physicsClientId=c,
         )
+        if self._fric is not None:
+            self._apply_floor_friction()
         pb.stepSimulation(physicsClientId=c)
+        if self._fric is not None:
+            self._pushed = bool(pb.getContactPoints(self._pusher, self._object, physicsClientId=c))
+
+    def _apply_floor_friction(self) -> None:
+        """`floor_friction=model`: the floor's friction for this step from the footprint model
+        (backends/floor_friction.py), applied at the floor under the CoM, with Bullet's own
+        object-floor friction off; Bullet keeps the normal contact, the pusher and the
+        integration."""
+        c = self._cid
+        com, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
+        v, w = pb.getBaseVelocity(self._object, physicsClientId=c)
+        yaw = pb.getEulerFromQuaternion(quat)[2]
+        dt = self.settings.timestep_s
+        imp = self._fric.impulse(np.array([v[0], v[1], w[2]]), yaw, dt, self._pushed)
+        if not imp.any():
+            return
+        f = imp / dt
+        pb.applyExternalForce(
+            self._object, -1, [f[0], f[1], 0.0], [com[0], com[1], 0.0], pb.WORLD_FRAME,
+            physicsClientId=c,
+        )  # fmt: skip
+        pb.applyExternalTorque(
+            self._object, -1, [0.0, 0.0, f[2]], pb.WORLD_FRAME, physicsClientId=c
+        )
 
     def _teleport_pusher(self, xy: Sequence[float]) -> None:
         c = self._cid
@@ -356,12 +379,6 @@ class PybulletSimulator(Simulator):
     def _pusher_xy(self) -> np.ndarray:
         pos, _ = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=self._cid)
         return np.array(pos[:2])
-
-    def _pusher_clearance_m(self, xy: Sequence[float], state: ObjectState) -> float:
-        """Gap between the pusher's surface and the object's footprint (negative = overlap)."""
-        poly = state.pose.to_world(self._outline)
-        assert self._scene is not None
-        return _point_polygon_distance(np.asarray(xy, float), poly) - self._scene.pusher.radius_m
 
     # --- queries --------------------------------------------------------------------------
     def _require_scene(self) -> SceneSpec:
@@ -416,124 +433,23 @@ class PybulletSimulator(Simulator):
         v_com = np.asarray(linear_m_s, dtype=float) + np.cross(w, rot @ self._com_local)
         pb.resetBaseVelocity(self._object, v_com.tolist(), w.tolist(), physicsClientId=self._cid)
 
-    def step(self, duration_s: float) -> None:
+    # --- protocol primitives (comexp.simulator.Simulator.push) ------------------------------
+    def _place_pusher(self, xy) -> None:
+        self._teleport_pusher(xy)
+
+    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
         self._require_scene()
-        n = max(0, round(duration_s / self.settings.timestep_s))
-        self._command_pusher(self._pusher_xy())
-        for _ in range(n):
-            self._step_once()
-
-    def _planar_rest(self, s: SimSettings) -> bool:
-        """Is the object's planar motion (what the camera and the estimator see) at rest?
-
-        Judged on the horizontal velocity of the footprint point under the CoM and on the yaw
-        rate. Not on the full 3D velocity: a prism with a many-sided footprint (ellipse, disc,
-        hexagon) rocks by ~0.02 deg at rest in pybullet, because the floor contact keeps only 4
-        of its bottom corners and which 4 changes from step to step; that rocking moves the CoM
-        by mm/s (vertically and, at CoM height, sideways) and used to end pushes `not_settled`.
-        """
-        v, w = pb.getBaseVelocity(self._object, physicsClientId=self._cid)
-        c = self._com_local[2]  # CoM height: the floor point under it moves at v - w x (0,0,c)
-        vx, vy = v[0] - c * w[1], v[1] + c * w[0]
-        return math.hypot(vx, vy) < s.settle_speed_m_s and abs(w[2]) < s.settle_spin_rad_s
-
-    # --- push -----------------------------------------------------------------------------
-    def push(self, cmd: PushCommand) -> PushOutcome:
-        scene = self._require_scene()
-        s = self.settings
-        dt = s.timestep_s
         c = self._cid
-        camera = scene.camera.model()
-        before = self.object_state()
-        start = np.asarray(cmd.start_xy_m, dtype=float)
-        direction = np.asarray(cmd.direction_xy, dtype=float)
-        max_tilt = before.tilt_deg
-        if self._pusher_clearance_m(start, before) < 0.0:
-            return PushOutcome(
-                PushStatus.PATH_BLOCKED, before.pose, before.pose, 0.0, 0, False, 0.0, max_tilt
-            )
-
-        steps = 0
-        contact = False
-        lag = 0.0
-        status: PushStatus | None = None
-        self._teleport_pusher(start)
-
-        def advance() -> ObjectState | None:
-            """One step; returns the state when it was checked for failures."""
-            nonlocal steps, contact, status, max_tilt
+        touched = False
+        for tx, ty in targets:
+            self._command_pusher((tx, ty))
             self._step_once()
-            steps += 1
-            if not contact and pb.getContactPoints(self._pusher, self._object, physicsClientId=c):
-                contact = True
-            if steps % _CHECK_EVERY == 0:
-                st = self.object_state()
-                max_tilt = max(max_tilt, st.tilt_deg) if st.is_finite else max_tilt
-                status = classify_state(st, self._outline, camera, s)
-                return st
-            return None
-
-        # 1) the straight path at the commanded speed. The motor (kp = kd = 1, target velocity
-        #    0) reaches its target in one step, so the target of each step is where the path is
-        #    at the end of that step: the pusher follows the path with no lag in free space.
-        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
-        for k in range(1, n_move + 1):
-            travelled = min(cmd.speed_m_s * k * dt, cmd.travel_m)
-            target = start + direction * travelled
-            self._command_pusher(target)
-            advance()
-            lag = max(lag, float(np.linalg.norm(self._pusher_xy() - target)))
-            if status is not None:
-                break
-
-        # 2) hold the pusher still and let the object come to rest.
-        if status is None:
-            hold_steps = max(1, round(s.settle_hold_s / dt))
-            quiet = 0
-            for _ in range(max(1, round(s.max_settle_s / dt))):
-                advance()
-                if status is not None:
-                    break
-                if self._planar_rest(s):
-                    quiet += 1
-                    if quiet >= hold_steps:
-                        break
-                else:
-                    quiet = 0
-            else:
-                status = PushStatus.NOT_SETTLED
-
-        # 3) back off along the push line until clear, then park out of view.
-        if status is None:
-            pos = self._pusher_xy()
-            n_back = math.ceil(_RETRACT_M / (_RETRACT_SPEED_M_S * dt))
-            for k in range(1, n_back + 1):
-                target = pos - direction * min(_RETRACT_SPEED_M_S * k * dt, _RETRACT_M)
-                self._command_pusher(target)
-                advance()
-                if status is not None:
-                    break
-        after = self.object_state()
-        if status is None or status is PushStatus.NOT_SETTLED:
-            final = classify_state(after, self._outline, camera, s)
-            status = final or status
-        if self._pusher_clearance_m(self._pusher_xy(), after) > _CLEAR_M:
-            self._teleport_pusher(_PARK_XY_M)
-        max_tilt = max(max_tilt, after.tilt_deg) if after.is_finite else max_tilt
-        self._steps_total += steps
-        return PushOutcome(
-            status=status or PushStatus.OK,
-            pose_before=before.pose,
-            pose_after=after.pose if after.is_finite else before.pose,
-            sim_time_s=steps * dt,
-            steps=steps,
-            contact_made=contact,
-            max_pusher_lag_m=lag,
-            max_tilt_deg=max_tilt,
-        )
-
-    def true_pose(self) -> Pose2D:
-        return self.object_state().pose
+            self._steps_total += 1
+            if not touched and pb.getContactPoints(self._pusher, self._object, physicsClientId=c):
+                touched = True
+            if self.trace is not None:
+                self.trace.append(self.object_state())
+        return touched, self.object_state().tilt_deg
 
     def close(self) -> None:
         if self._cid >= 0:

@@ -196,6 +196,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
                 max_retries=exp.execution.max_retries,
                 replace_timeout_s=exp.execution.restart_timeout_s,
                 episode_timeout_s=exp.execution.episode_timeout_s,
+                backend_options=exp.backend.options(),
             )
             with pool:
                 stats = run_and_store(

@@ -41,7 +41,14 @@ class ConfigError(ValueError):
 
 @dataclass
 class BackendConfig:
-    name: str = "pybullet"  # pybullet | mujoco
+    name: str = "pybullet"  # planar | pybullet | mujoco
+    # engines only: "model" = the shared footprint friction model applied as a force each step
+    # (the engine's own object-floor friction off); "native" = the engine's own friction
+    floor_friction: str = "model"
+
+    def options(self) -> dict[str, str]:
+        """The simulator's constructor options (`comexp.simulator.make_simulator`)."""
+        return {} if self.name == "planar" else {"floor_friction": self.floor_friction}
 
 
 @dataclass
@@ -241,6 +248,15 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
         raise ConfigError(
             f"unknown backend {cfg.backend.name!r} (choose one of: {', '.join(backend_names())})"
         )
+    from comexp.simulator import FLOOR_FRICTION_CHOICES
+
+    if cfg.backend.floor_friction not in FLOOR_FRICTION_CHOICES:
+        raise ConfigError(
+            f"backend.floor_friction must be one of {', '.join(FLOOR_FRICTION_CHOICES)}, "
+            f"got {cfg.backend.floor_friction!r}"
+        )
+    if cfg.backend.name == "planar" and cfg.backend.floor_friction != "model":
+        raise ConfigError("backend=planar is the friction model itself: floor_friction=model only")
     fl = cfg.floor
     if fl.name not in FLOOR_KINDS:
         raise ConfigError(f"floor.name must be one of {', '.join(FLOOR_KINDS)}, got {fl.name!r}")

@@ -53,6 +53,10 @@ class EpisodeSpec:
     # an experimenter would; 0 disables. A 40 cm/s push slides an object ~11 cm on the mu 0.1
     # floor, so without this about 15% of 5-push episodes there leave the 0.6 m floor.
     recenter_beyond_cm: float = 10.0
+    # What determines the physics (`comexp.simulator.physics_identity`: backend model revision,
+    # engine version, backend and protocol settings); part of the episode's identity, so a
+    # database is never resumed across physics versions. "" = not pinned (library use).
+    physics: str = ""
 
     @classmethod
     def for_object(
@@ -88,9 +92,9 @@ class PushRecord:
 class EpisodeResult:
     spec: EpisodeSpec
     status: str  # ok | failed
-    failure: (
-        str | None
-    )  # tipped, left_view, no_valid_contact, sim_unstable, not_settled, timeout, error
+    # failed: tipped, left_view, sim_unstable, not_settled, path_blocked (pusher start inside
+    # the object), no_valid_contact, perception, timeout, worker_died, physics_mismatch, error
+    failure: str | None
     est_com_cm: tuple[float, float] | None
     error_cm: float | None
     n_pushes: int

@@ -53,7 +53,10 @@ def expand_grid(
         from comexp.objects import com_points
 
         com_fn = com_points
+    from comexp.simulator import physics_identity
+
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
+    physics = physics_identity(cfg.backend.name, options=cfg.backend.options())
     names = list(cfg.grid.objects) if cfg.grid.objects is not None else sorted(objects)
     floors = floor_conditions(cfg.floor.name, cfg.floor.mu, cfg.floor.orientations)
     n_com = cfg.grid.coms_per_object
@@ -72,6 +75,7 @@ def expand_grid(
                 seed=episode_seed(cfg.seed, name, k),
                 push_length_cm=float(cfg.episode.push_length_cm),
                 recenter_beyond_cm=float(cfg.episode.recenter_beyond_cm),
+                physics=physics,
             )
             for izz in cfg.grid.izz_scales:
                 for mu_x, mu_y in floors:

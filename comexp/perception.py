@@ -408,12 +408,29 @@ def render_prism_depth(
 ) -> DepthImage:
     """Exact ray-cast depth image of an extruded polygon on the floor (no engine needed).
 
-    For tests and benchmarks: each pixel's ray is followed from the top-face plane down to the
-    floor; it hits the top face, enters through a side wall, or reaches the floor.
+    The camera of `backend=planar` and of tests: each pixel's ray is followed from the top-face
+    plane down to the floor; it hits the top face, enters through a side wall, or reaches the
+    floor. Only the pixels between the outline's projections at the floor and at the top face
+    can hit the object (a point of a side wall projects between the two), so only that window
+    is ray-cast; the rest is floor.
     """
     outline = np.asarray(outline_m, dtype=float)
     hz = camera.position_m[2]
-    vv, uu = np.mgrid[0 : camera.height_px, 0 : camera.width_px]
+    depth_img = np.full((camera.height_px, camera.width_px), hz)
+    world = pose.to_world(outline)
+    uv = np.concatenate(
+        [
+            camera.world_to_pixel(world[:, 0], world[:, 1], 0.0),
+            camera.world_to_pixel(world[:, 0], world[:, 1], height_m),
+        ]
+    )
+    u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + 1, camera.width_px - 1)
+    v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + 1, camera.height_px - 1)
+    if u1 < u0 or v1 < v0:
+        return DepthImage(depth_img, camera)
+    vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
     u, v = uu.ravel().astype(float), vv.ravel().astype(float)
     top = pose.to_object(camera.pixel_to_world(u, v, np.full(u.shape, hz - height_m))[:, :2])
     bot = pose.to_object(camera.pixel_to_world(u, v, np.full(u.shape, hz))[:, :2])
@@ -436,4 +453,5 @@ def render_prism_depth(
     d_rest = np.full(p.shape[0], hz)
     d_rest[wall] = hz - height_m * (1.0 - t[wall])
     depth[rest] = d_rest
-    return DepthImage(depth.reshape(camera.height_px, camera.width_px), camera)
+    depth_img[v0 : v1 + 1, u0 : u1 + 1] = depth.reshape(v1 - v0 + 1, u1 - u0 + 1)
+    return DepthImage(depth_img, camera)

@@ -266,7 +266,13 @@ class PushCommand:
 
 @dataclass(frozen=True)
 class SimSettings:
-    """Engine-independent stepping, settle and failure settings."""
+    """The push protocol's settings, the same for every engine (`Simulator.push`).
+
+    At rest: the object frame's floor point moves slower than `settle_speed_m_s` and it turns
+    slower than `settle_spin_rad_s` at every check for `settle_hold_s`. Then the pusher backs
+    off along the push line by `retract_m` at `retract_speed_m_s` and is parked once it is
+    `clear_m` clear of the object.
+    """
 
     timestep_s: float = 0.001
     settle_speed_m_s: float = 2e-3
@@ -274,3 +280,6 @@ class SimSettings:
     settle_hold_s: float = 0.05
     max_settle_s: float = 5.0
     tip_limit_deg: float = 15.0
+    retract_m: float = 0.006
+    retract_speed_m_s: float = 0.1
+    clear_m: float = 5e-4

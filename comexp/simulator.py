@@ -12,6 +12,7 @@ import enum
 import importlib
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,9 +28,17 @@ from comexp.scene import (
 )
 
 BACKENDS: dict[str, str] = {
+    "planar": "comexp.backends.planar_sim:PlanarSimulator",
     "pybullet": "comexp.backends.pybullet_sim:PybulletSimulator",
     "mujoco": "comexp.backends.mujoco_sim:MujocoSimulator",
 }
+# How an engine gets the floor's friction: "model" applies the shared footprint model
+# (backends/floor_friction.py) as a force each step, the engine's own object-floor friction off;
+# "native" is the engine's own contact friction (kept to show the difference).
+FLOOR_FRICTION_CHOICES = ("model", "native")
+# Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
+# pusher's top, unreachable by an object still in view.
+PARK_XY_M = (0.0, 0.5)
 
 
 class PushStatus(enum.StrEnum):
@@ -95,12 +104,24 @@ def classify_state(
 
 
 class Simulator(ABC):
-    """One engine instance; `build` may be called many times (scene reuse is the backend's job)."""
+    """One engine instance behind the shared push protocol.
+
+    `build` may be called many times (scene reuse is the backend's job). The protocol of a push
+    (`push`: start clear, move along the normal for the travel, stop, wait for rest under one
+    settle rule, clear the pusher, classify failures) is written once, here; an engine
+    implements only the primitives below it (place and drive the pusher, advance, read the
+    state), so that a cross-engine comparison compares physics, not protocols.
+    """
 
     name: str = ""
+    # steps advanced between two failure / rest checks (an engine-specific need: MuJoCo runs a
+    # chunk of steps in C between Python checks); part of the protocol's settings
+    check_every_steps: int = 5
 
     def __init__(self, settings: SimSettings | None = None) -> None:
         self.settings = settings or SimSettings()
+        # when a list, every step's ObjectState is appended to it (physics tests: lift, tilt)
+        self.trace: list[ObjectState] | None = None
 
     @abstractmethod
     def build(self, scene: SceneSpec) -> None:
@@ -112,12 +133,136 @@ class Simulator(ABC):
         """Top-down metric depth image of the current scene (pusher parked, out of view)."""
 
     @abstractmethod
-    def push(self, cmd: PushCommand) -> PushOutcome:
-        """Execute the push, let the object come to rest, park the pusher, report."""
-
-    @abstractmethod
     def object_state(self) -> ObjectState:
         """True state of the object frame: evaluation and tests only."""
+
+    # --- protocol primitives -------------------------------------------------------------
+    @abstractmethod
+    def _place_pusher(self, xy: np.ndarray | Sequence[float]) -> None:
+        """Put the pusher at rest at a world point (only called where it is clear of the
+        object: the start of a push, the parking spot)."""
+
+    @abstractmethod
+    def _pusher_xy(self) -> np.ndarray:
+        """The pusher axis' actual world position."""
+
+    @abstractmethod
+    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+        """Run len(targets) steps; the pusher reaches targets[i] (world, m) at the end of
+        step i, moving straight between them. Returns (pusher touched the object during these
+        steps, max tilt in deg over them). Appends every step's state to `trace` if set."""
+
+    def _engine_failure(self) -> PushStatus | None:
+        """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
+        return None
+
+    def _park_xy(self) -> tuple[float, float]:
+        return PARK_XY_M
+
+    # --- the push protocol ---------------------------------------------------------------
+    def push(self, cmd: PushCommand) -> PushOutcome:
+        """Execute the push, let the object come to rest, clear and park the pusher, report."""
+        s = self.settings
+        dt = s.timestep_s
+        camera = self._camera_model()
+        outline = self._outline_m()
+        before = self.object_state()
+        start = np.asarray(cmd.start_xy_m, dtype=float)
+        direction = np.asarray(cmd.direction_xy, dtype=float)
+        max_tilt = before.tilt_deg
+        if pusher_clearance_m(start, before, outline, self._pusher_radius_m()) < 0.0:
+            return PushOutcome(
+                PushStatus.PATH_BLOCKED, before.pose, before.pose, 0.0, 0, False, 0.0, max_tilt
+            )
+        self._place_pusher(start)
+        steps = 0
+        contact = False
+        lag = 0.0
+        status: PushStatus | None = None
+        chunk = max(1, int(self.check_every_steps))
+
+        def run(targets: np.ndarray) -> ObjectState:
+            nonlocal steps, contact, status, max_tilt
+            touched, tilt = self._advance(targets)
+            steps += len(targets)
+            contact = contact or touched
+            st = self.object_state()
+            max_tilt = max(max_tilt, tilt, st.tilt_deg if st.is_finite else 0.0)
+            status = self._engine_failure() or classify_state(st, outline, camera, s)
+            return st
+
+        # 1) the straight path at the commanded speed; the pusher is where the path is at the
+        #    end of each step
+        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
+        k = 0
+        while k < n_move and status is None:
+            n = min(chunk, n_move - k)
+            travelled = np.minimum(cmd.speed_m_s * dt * np.arange(k + 1, k + n + 1), cmd.travel_m)
+            targets = start + travelled[:, None] * direction
+            run(targets)
+            k += n
+            lag = max(lag, float(np.linalg.norm(self._pusher_xy() - targets[-1])))
+        # 2) hold the pusher still; at rest = the object frame's floor point and yaw below the
+        #    settle limits at every check for settle_hold_s
+        if status is None:
+            hold_checks = max(1, math.ceil(s.settle_hold_s / (dt * chunk) - 1e-9))
+            quiet = 0
+            held = np.repeat(start[None, :] + cmd.travel_m * direction[None, :], chunk, axis=0)
+            for _ in range(max(1, math.ceil(s.max_settle_s / (dt * chunk)))):
+                st = run(held)
+                if status is not None:
+                    break
+                if at_rest(st, s):
+                    quiet += 1
+                    if quiet >= hold_checks:
+                        break
+                else:
+                    quiet = 0
+            else:
+                status = PushStatus.NOT_SETTLED
+        # 3) back off along the push line until clear, then park out of view
+        if status is None:
+            end = self._pusher_xy()
+            n_back = math.ceil(s.retract_m / (s.retract_speed_m_s * dt))
+            back = np.minimum(s.retract_speed_m_s * dt * np.arange(1, n_back + 1), s.retract_m)
+            for i in range(0, n_back, chunk):
+                run(end - back[i : i + chunk, None] * direction)
+                if status is not None:
+                    break
+        after = self.object_state()
+        if status is None or status is PushStatus.NOT_SETTLED:
+            status = classify_state(after, outline, camera, s) or status
+        if pusher_clearance_m(self._pusher_xy(), after, outline, self._pusher_radius_m()) > (
+            s.clear_m
+        ):
+            self._place_pusher(self._park_xy())
+        max_tilt = max(max_tilt, after.tilt_deg) if after.is_finite else max_tilt
+        return PushOutcome(
+            status=status or PushStatus.OK,
+            pose_before=before.pose,
+            pose_after=after.pose if after.is_finite else before.pose,
+            sim_time_s=steps * dt,
+            steps=steps,
+            contact_made=contact,
+            max_pusher_lag_m=lag,
+            max_tilt_deg=max_tilt,
+        )
+
+    # the scene the protocol needs (every backend keeps the SceneSpec it built)
+    def _scene_or_fail(self) -> SceneSpec:
+        scene = getattr(self, "_scene", None)
+        if scene is None:
+            raise RuntimeError("build() a scene first")
+        return scene
+
+    def _camera_model(self) -> CameraModel:
+        return self._scene_or_fail().camera.model()
+
+    def _outline_m(self) -> np.ndarray:
+        return np.asarray(self._scene_or_fail().obj.outline_m, dtype=float)
+
+    def _pusher_radius_m(self) -> float:
+        return self._scene_or_fail().pusher.radius_m
 
     def true_pose(self) -> Pose2D:
         return self.object_state().pose
@@ -127,11 +272,14 @@ class Simulator(ABC):
     def set_object_velocity(
         self, linear_m_s: tuple[float, float, float], angular_rad_s: tuple[float, float, float]
     ) -> None:
-        """Overwrite the object's velocity (world frame)."""
+        """Overwrite the object's velocity (world frame; linear = the object frame origin's)."""
 
-    @abstractmethod
     def step(self, duration_s: float) -> None:
         """Advance the simulation by `duration_s` (rounded to whole steps), pusher held still."""
+        self._scene_or_fail()
+        n = max(0, round(duration_s / self.settings.timestep_s))
+        if n:
+            self._advance(np.repeat(self._pusher_xy()[None, :], n, axis=0))
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release engine resources."""
@@ -143,19 +291,82 @@ class Simulator(ABC):
         self.close()
 
 
+def at_rest(state: ObjectState, s: SimSettings) -> bool:
+    """The one settle rule: what the camera and the estimator see is at rest, i.e. the object
+    frame's origin (a point of the bottom face) moves slower than `settle_speed_m_s` across
+    the floor and the object turns slower than `settle_spin_rad_s` about z.
+
+    Not on the full 3-D velocity: a many-sided prism rocks by ~0.02 deg at rest in pybullet
+    (its floor contact keeps 4 bottom corners, which 4 changes from step to step); that
+    rocking moves the CoM by mm/s and would never count as rest.
+    """
+    v = state.linear_velocity_m_s
+    return (
+        math.hypot(v[0], v[1]) < s.settle_speed_m_s
+        and abs(state.angular_velocity_rad_s[2]) < s.settle_spin_rad_s
+    )
+
+
+def point_polygon_distance(pt: np.ndarray, poly: np.ndarray) -> float:
+    """Signed distance from a point to a simple polygon's boundary (negative inside)."""
+    a = poly
+    ab = np.roll(poly, -1, axis=0) - a
+    t = np.clip(np.einsum("ij,ij->i", pt - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+    d = float(np.min(np.hypot(*(a + t[:, None] * ab - pt).T)))
+    crosses = (a[:, 1] > pt[1]) != (np.roll(a[:, 1], -1) > pt[1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = a[:, 0] + (pt[1] - a[:, 1]) * ab[:, 0] / ab[:, 1]
+    inside = int(np.sum(crosses & (pt[0] < x_at))) % 2 == 1
+    return -d if inside else d
+
+
+def pusher_clearance_m(
+    xy: np.ndarray | Sequence[float], state: ObjectState, outline_m: np.ndarray, radius_m: float
+) -> float:
+    """Gap between the pusher's surface and the object's footprint (negative = overlap)."""
+    poly = state.pose.to_world(outline_m)
+    return point_polygon_distance(np.asarray(xy, dtype=float), poly) - radius_m
+
+
+def physics_identity(
+    name: str, settings: SimSettings | None = None, options: dict | None = None
+) -> str:
+    """What determines an episode's physics on backend `name`, as one short string: the
+    backend's model revision (`PHYSICS_VERSION` in its module, bumped by any change that
+    changes results), the engine's version, and a hash of the backend's settings and of the
+    push protocol's. It is part of every episode's identity (`EpisodeSpec.physics`), so a
+    database is never resumed across physics versions and no report pools two of them."""
+    import hashlib
+    from importlib import metadata
+
+    try:
+        module_name = BACKENDS[name].split(":")[0]
+    except KeyError:
+        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
+    module = importlib.import_module(module_name)
+    engine = getattr(module, "ENGINE_DISTRIBUTION", None)
+    engine_v = metadata.version(engine) if engine else "none"
+    text = repr(
+        (module.PHYSICS_SETTINGS, settings or SimSettings(), sorted((options or {}).items()))
+    )
+    digest = hashlib.sha256(text.encode()).hexdigest()[:10]
+    return f"{name}/{module.PHYSICS_VERSION}/{engine or 'numpy'}-{engine_v}/{digest}"
+
+
 def backend_names() -> list[str]:
     return sorted(BACKENDS)
 
 
-def make_simulator(name: str, settings: SimSettings | None = None) -> Simulator:
-    """Create a backend by name (`pybullet` or `mujoco`); engines are imported lazily."""
+def make_simulator(name: str, settings: SimSettings | None = None, **options) -> Simulator:
+    """Create a backend by name (`planar`, `pybullet`, `mujoco`); engines are imported lazily.
+    `options` are the backend's own (e.g. `floor_friction` for the engines)."""
     try:
         target = BACKENDS[name]
     except KeyError:
         raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
     module_name, cls_name = target.split(":")
     cls = getattr(importlib.import_module(module_name), cls_name)
-    return cls(settings)
+    return cls(settings, **options)
 
 
 def contact_push(

@@ -92,6 +92,16 @@ class KinematicSim(Simulator):
     def set_object_velocity(self, linear_m_s, angular_rad_s) -> None:
         raise NotImplementedError
 
+    # `push` is replaced whole, so the protocol's primitives are never called
+    def _place_pusher(self, xy) -> None:
+        raise NotImplementedError
+
+    def _pusher_xy(self):
+        raise NotImplementedError
+
+    def _advance(self, targets):
+        raise NotImplementedError
+
     def step(self, duration_s: float) -> None:
         pass
 

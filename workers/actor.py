@@ -133,8 +133,11 @@ class EpisodeWorker:
         runner_kwargs: dict[str, Any] | None = None,
         episode_timeout_s: float | None = None,
         kill_grace_s: float | None = None,
+        backend_options: dict[str, Any] | None = None,
     ) -> None:
         self.backend = backend
+        # the backend's own options (e.g. floor_friction), passed to the simulator factory
+        self.backend_options = dict(backend_options or {})
         self._runner = import_dotted(runner)
         self._factory = import_dotted(simulator_factory)
         self._runner_kwargs = dict(runner_kwargs or {})
@@ -144,8 +147,9 @@ class EpisodeWorker:
         if self.episode_timeout_s is not None:
             grace = kill_grace_s if kill_grace_s is not None else max(10.0, self.episode_timeout_s)
             self._watchdog = _Watchdog(grace)
-        self._sim: Any = self._factory(backend)
+        self._sim: Any = self._factory(backend, **self.backend_options)
         self.episodes_run = 0
+        self._physics: str | None = None
         info = self.ready()
         self._where = f"{info['node_ip']}:{info['pid']}"
 
@@ -175,7 +179,12 @@ class EpisodeWorker:
         result: EpisodeResult | None = None
         try:
             if self._sim is None:
-                self._sim = self._factory(self.backend)
+                self._sim = self._factory(self.backend, **self.backend_options)
+            mismatch = self._physics_mismatch(spec)
+            if mismatch:
+                self.episodes_run += 1
+                res = failed_result(spec, "physics_mismatch", mismatch, time.perf_counter() - t0)
+                return dataclasses.replace(res, worker=self._where)
             with self._time_limit(spec):
                 result = self._runner(spec, self._sim, **self._runner_kwargs)
         except EpisodeTimeout:
@@ -190,6 +199,22 @@ class EpisodeWorker:
             self._drop_simulator()
         self.episodes_run += 1
         return dataclasses.replace(result, worker=self._where)
+
+    def _physics_mismatch(self, spec: EpisodeSpec) -> str:
+        """A node whose engine or backend revision differs from the driver's would compute
+        other physics under the same episode identity: refuse, saying what differs."""
+        if not spec.physics or spec.backend != self.backend:
+            return ""
+        if self._physics is None:
+            from comexp.simulator import physics_identity
+
+            try:
+                self._physics = physics_identity(self.backend, options=self.backend_options)
+            except Exception:  # noqa: BLE001 - a fake backend in tests has no identity
+                self._physics = ""
+        if self._physics and self._physics != spec.physics:
+            return f"this worker runs {self._physics}, the episode asks for {spec.physics}"
+        return ""
 
     @contextlib.contextmanager
     def _time_limit(self, spec: EpisodeSpec) -> Iterator[None]:

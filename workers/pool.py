@@ -186,6 +186,7 @@ class EpisodePool:
         replace_timeout_s: float = 60.0,
         episode_timeout_s: float | None = None,
         kill_grace_s: float | None = None,
+        backend_options: dict[str, Any] | None = None,
     ) -> None:
         if workers < 1 or batch_size < 1 or max_retries < 0 or inflight_per_worker < 1:
             raise ValueError("workers, batch_size, inflight_per_worker >= 1; max_retries >= 0")
@@ -204,6 +205,7 @@ class EpisodePool:
             runner_kwargs,
             episode_timeout_s,
             kill_grace_s,
+            backend_options,
         )
         self._slots: list[_Slot] = []
         self.stats = PoolStats()

@@ -1,0 +1,150 @@
+"""The planar reference model's own checks: pressure, stiction, convergence, speed of a step.
+
+The shared physics contract (tests/test_contract.py) holds every backend to closed forms; these
+tests check the pieces of the reference itself that the contract cannot see.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from comexp.backends.floor_friction import FrictionSettings, WinklerPressure, footprint_samples
+from comexp.backends.planar_sim import PlanarSimulator
+from comexp.geometry import box_object, prism_object
+from comexp.scene import FloorSpec, SceneSpec, SimSettings
+from comexp.simulator import PushStatus, contact_push
+
+RECT = np.array([(-0.04, -0.025), (0.04, -0.025), (0.04, 0.025), (-0.04, 0.025)])
+
+
+def test_samples_carry_the_polygons_area_and_centroid():
+    tri = np.array([(-0.03, -0.02), (0.05, -0.01), (-0.01, 0.04)])
+    for poly in (RECT, tri):
+        pts, a = footprint_samples(poly, 300)
+        import shapely
+
+        ref = shapely.Polygon(poly)
+        assert a.sum() == pytest.approx(ref.area, rel=1e-9)
+        c = (a @ pts) / a.sum()
+        assert c == pytest.approx(np.asarray(ref.centroid.coords[0]), abs=1e-9)
+
+
+@pytest.mark.parametrize("c", [(0.0, 0.0), (0.01, -0.005), (0.03, 0.0), (-0.035, 0.02)])
+def test_winkler_pressure_puts_its_centre_where_asked_and_pulls_nowhere(c):
+    pts, a = footprint_samples(RECT, 400)
+    com = np.array([0.005, -0.003])
+    W = 1.962
+    f = WinklerPressure(pts - com, a, W).forces(np.asarray(c, dtype=float))
+    assert np.all(f >= 0.0)
+    assert f.sum() == pytest.approx(W, rel=1e-9)
+    assert (f @ (pts - com)) / W == pytest.approx(np.asarray(c), abs=1e-9)
+
+
+def test_winkler_pressure_is_linear_inside_the_kern():
+    """Inside the kern (a rhombus of half-diagonals L/6 for a rectangle) no sample is clipped
+    and the pressure is exactly linear; beyond it part of the footprint carries nothing."""
+    pts, a = footprint_samples(RECT, 400)
+    W = 1.0
+    inside = WinklerPressure(pts, a, W).forces(np.array([0.08 / 6 * 0.9, 0.0])) / a
+    assert np.all(inside > 0)
+    fit = np.polyfit(pts[:, 0], inside, 1)
+    assert np.allclose(np.polyval(fit, pts[:, 0]), inside, rtol=1e-9)
+    beyond = WinklerPressure(pts, a, W).forces(np.array([0.08 / 6 * 1.5, 0.0]))
+    assert np.any(beyond == 0.0)
+
+
+def _pushed_box(sim, mu, speed, lever=0.01, com=(0.0, 0.0)):
+    scene = SceneSpec(FloorSpec(mu, mu), box_object(0.08, 0.05, 0.015, com_m=com, mu_pusher=0.5))
+    sim.build(scene)
+    return sim.push(contact_push((-0.04, lever), (1.0, 0.0), 0.03, speed, 0.005))
+
+
+def test_an_object_at_rest_stays_exactly_at_rest():
+    """Stiction without creep or chatter: once the friction can hold the object, its velocity
+    is exactly zero and its pose does not move over a further second."""
+    sim = PlanarSimulator()
+    out = _pushed_box(sim, 1.0, 0.04)
+    assert out.status is PushStatus.OK
+    st0 = sim.object_state()
+    sim.step(1.0)
+    st1 = sim.object_state()
+    assert st1.position_m == st0.position_m and st1.yaw_rad == st0.yaw_rad
+    assert st1.linear_velocity_m_s == (0.0, 0.0, 0.0)
+    assert st1.angular_velocity_rad_s == (0.0, 0.0, 0.0)
+
+
+def test_a_slide_stops_without_reversing():
+    """Backward-Euler friction: the speed falls to zero and stays there (no sign flip)."""
+    sim = PlanarSimulator()
+    sim.build(SceneSpec(FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.015)))
+    sim.set_object_velocity((0.2, 0.0, 0.0), (0.0, 0.0, 0.0))
+    vs = []
+    for _ in range(60):
+        sim.step(0.001)
+        vs.append(sim.object_state().linear_velocity_m_s[0])
+    assert min(vs) >= 0.0
+    assert vs[-1] == 0.0
+    # stop time of a uniform deceleration mu g from 0.2 m/s: 20.4 ms, to a step
+    t_stop = (next(i for i, v in enumerate(vs) if v == 0.0) + 1) * 1e-3
+    assert t_stop == pytest.approx(0.2 / 9.81, abs=1.5e-3)
+
+
+@pytest.mark.parametrize("speed", [0.4, 0.04])
+def test_rotation_converges_in_the_grid_and_the_timestep(speed):
+    """The reference's numerical settings are converged: 4x the samples or half the step move
+    a 1 cm lever-arm push's rotation by < 1% (mu 0.1 floor: the longest slides)."""
+    base = PlanarSimulator()
+    ref = _pushed_box(base, 0.1, speed).rotation_deg
+    fine = PlanarSimulator(planar=replace(FrictionSettings(), samples=1600))
+    rot_fine = _pushed_box(fine, 0.1, speed).rotation_deg
+    half = PlanarSimulator(settings=replace(SimSettings(), timestep_s=0.0005))
+    rot_half = _pushed_box(half, 0.1, speed).rotation_deg
+    assert abs(ref) > 5.0
+    assert rot_fine == pytest.approx(ref, rel=0.01), (ref, rot_fine)
+    assert rot_half == pytest.approx(ref, rel=0.01), (ref, rot_half)
+
+
+def test_centre_of_pressure_moves_forward_by_mu_h_over_2_while_sliding():
+    """A free slide on mu 1: the friction at the floor, the inertia at h/2: the pressure centre
+    sits mu h / 2 ahead of the CoM (7.5 mm for a 1.5 cm prism)."""
+    sim = PlanarSimulator()
+    sim.build(SceneSpec(FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.015)))
+    sim.set_object_velocity((0.3, 0.0, 0.0), (0.0, 0.0, 0.0))
+    sim.step(0.005)
+    cop = sim._model.fr.cop
+    assert cop[0] == pytest.approx(1.0 * 0.015 / 2, rel=0.01)
+    assert abs(cop[1]) < 1e-6
+
+
+def test_sustained_push_that_would_tip_reports_tipped():
+    """A narrow tall block pushed on mu 1 at 3.2 cm height tips (mu z_p > half-width)."""
+    sim = PlanarSimulator()
+    tall = prism_object(
+        "tall", [(-0.01, -0.01), (0.01, -0.01), (0.01, 0.01), (-0.01, 0.01)], 0.12, (0, 0)
+    )
+    sim.build(SceneSpec(FloorSpec(1.0, 1.0), tall))
+    out = sim.push(contact_push((-0.01, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005))
+    assert out.status is PushStatus.TIPPED
+
+
+def test_the_same_episode_gives_the_same_numbers():
+    a = _pushed_box(PlanarSimulator(), 0.1, 0.4)
+    b = _pushed_box(PlanarSimulator(), 0.1, 0.4)
+    assert a == b
+
+
+def test_rendered_pose_matches_the_state():
+    """The camera is the exact ray-cast of the prism at the model's pose."""
+    from comexp.perception import observe
+
+    sim = PlanarSimulator()
+    out = _pushed_box(sim, 0.1, 0.4)
+    assert out.ok
+    obs = observe(sim.render_depth())
+    pose = sim.object_state().pose
+    centre = obs.points_m.mean(axis=0)
+    assert math.hypot(centre[0] - pose.x_m, centre[1] - pose.y_m) < 1e-3
