@@ -367,3 +367,26 @@ def test_backend_figure_needs_two_backends_on_one_condition(tmp_path: Path) -> N
         assert backends == ["backends_all.png"]
         per_object = [p.name for p in paths if p.name.startswith("error_per_object_")]
         assert len(per_object) == 3  # pybullet vision, pybullet oracle, mujoco vision
+
+
+def test_bench_study_report_uses_the_same_grouping(study_db: ResultsDB) -> None:
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "bench" / "study_report.py"
+    r = subprocess.run(
+        [sys.executable, str(script), "--db", str(study_db.path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    for t in condition_tables(study_db, pool=PAPER_POOL):
+        c = t.condition
+        line = next(
+            x
+            for x in r.stdout.splitlines()
+            if x.startswith(f"| {c.pooling(('speed_cm_s',)).label()} | {c.speed_cm_s:g} |")
+        )
+        assert f"| {t.overall.mean:.3f} | {t.overall.std:.3f} |" in line
+    assert "## Cross-backend agreement" in r.stdout
