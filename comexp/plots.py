@@ -150,7 +150,16 @@ def _failed(groups: Mapping[Condition, Rows]) -> int:
 def _pooled_caption(groups: Mapping[Condition, Rows], pool: Sequence[str]) -> str:
     rows = [r for g in groups.values() for r in g]
     vals = pooled_values(rows, pool)
-    return "; ".join(f"{c} {{{', '.join(fmt_num(v) for v in vs)}}}" for c, vs in vals.items())
+    parts = []
+    if "mu_floor_x" in vals and "mu_floor_y" in vals:
+        pairs = zip(vals.pop("mu_floor_x"), vals.pop("mu_floor_y"), strict=True)
+        parts.append(
+            "floor (mu_x, mu_y) {"
+            + ", ".join(f"({fmt_num(a)}, {fmt_num(b)})" for a, b in pairs)
+            + "}"
+        )
+    parts += [f"{c} {{{', '.join(fmt_num(v) for v in vs)}}}" for c, vs in vals.items()]
+    return "; ".join(parts)
 
 
 def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
