@@ -60,6 +60,7 @@ KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
 _FLOAT_TOL = 1e-9  # condition filters compare stored floats with this tolerance
+_SCHEMA_LOCK_ID = 0x636F6D6578  # "comex": PostgreSQL advisory lock taken while creating tables
 
 
 # --------------------------------------------------------------------------- episode key
@@ -377,6 +378,10 @@ class ResultsDB:
             if self.is_sqlite:
                 _install_sqlite_hooks(engine, begin="BEGIN IMMEDIATE", wal=True)
             with engine.begin() as conn:  # serialised: two processes may create the schema
+                if conn.dialect.name == "postgresql":
+                    # concurrent CREATE TABLEs collide in PostgreSQL's catalog (duplicate key
+                    # in pg_type): one creator at a time; the lock ends with the transaction
+                    conn.exec_driver_sql(f"SELECT pg_advisory_xact_lock({_SCHEMA_LOCK_ID})")
                 Base.metadata.create_all(conn)
                 version = conn.execute(select(META.c.value).where(META.c.key == "schema")).scalar()
                 if version is None:

@@ -151,9 +151,12 @@ def _job_and_checks(package, url: str, work: Path, ray_tmp: Path, tmp_path: Path
     first = comexp(work, *TINY, f"db={url}", TMPDIR=str(ray_tmp))
     assert first.returncode == 0, first.stderr
     assert "ran 1 episodes" in first.stdout and "1 of its 1 grid episodes" in first.stdout
-    again = comexp(work, *TINY, f"db={url}", TMPDIR=str(ray_tmp))
+    # the resume as a multirun: Hydra's launcher lists each job's overrides, and saves
+    # multirun.yaml beside the jobs
+    again = comexp(work, "-m", *TINY, f"db={url}", TMPDIR=str(ray_tmp))
     assert again.returncode == 0, again.stderr
     assert "all 1 episodes already stored" in again.stdout
+    assert "#0 : " in again.stdout + again.stderr and "***" in again.stdout + again.stderr
 
     with ResultsDB(url, readonly=True) as db:
         (row,) = db.episodes()
@@ -185,9 +188,17 @@ def _job_and_checks(package, url: str, work: Path, ray_tmp: Path, tmp_path: Path
     assert r.returncode == 0 and (tmp_path / "ep.png").read_bytes()[:4] == b"\x89PNG"
     assert "mu_floor=0.1" in outputs[4]  # the summary's condition
     # Hydra's saved overrides keep the URL, with *** for the password
-    saved = sorted(work.glob("results/runs/*/.hydra/overrides.yaml"))
-    assert len(saved) == 2 and "***" in redact_url(url)  # the job and its resume
-    assert all(f"db={redact_url(url)}" in p.read_text() for p in saved)
+    saved = [
+        *work.glob("results/runs/*/.hydra/overrides.yaml"),
+        *work.glob("results/multirun/*/*/.hydra/overrides.yaml"),
+        *work.glob("results/multirun/*/multirun.yaml"),
+    ]
+    assert len(saved) == 3 and "***" in redact_url(url)  # the job, its resume, the multirun
+    # (a multirun's job overrides escape ':' as '\\:', so look for the *** only)
+    unscrubbed = [str(p) for p in saved if "@127.0.0.1" not in p.read_text().replace("\\", "")]
+    assert unscrubbed == []
+    unscrubbed = [str(p) for p in saved if ":***@" not in p.read_text().replace("\\", "")]
+    assert unscrubbed == []
     # nowhere: terminal, Hydra's saved configs and comexp.log, the sweeps table
     assert not [o for o in outputs if PASSWORD in o]
     assert _grep_tree(work, PASSWORD) == []
@@ -272,3 +283,27 @@ def test_missing_driver_is_one_line(tmp_path: Path) -> None:
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
     assert "pip install 'comexp[postgres]'" in r.stderr
+
+
+def test_concurrent_first_opens_create_the_schema_once(pg: PgServer) -> None:
+    """Writers that open a fresh database at the same moment all succeed (PostgreSQL's
+    catalog rejects concurrent CREATE TABLEs of the same name without the schema lock)."""
+    url = pg.create_database("first_open")
+    barrier = threading.Barrier(6)
+    errors: list[BaseException] = []
+
+    def open_once() -> None:
+        barrier.wait()
+        try:
+            ResultsDB(url).close()
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_once) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert errors == []
+    with ResultsDB(url, readonly=True) as db, db.engine.connect() as conn:
+        assert conn.exec_driver_sql("SELECT value FROM comexp_meta").scalars().all() == ["2"]
