@@ -13,7 +13,8 @@ export RAY_USAGE_STATS_ENABLED ?= 0
 
 # Headless MuJoCo rendering uses EGL on Mesa (llvmpipe, CPU only): Debian packages libegl1,
 # libegl-mesa0 and libgl1-mesa-dri. Installed here when missing and we are root; otherwise
-# the README says what to install.
+# the README says what to install. The PostgreSQL tests start a throw-away server from Debian's
+# `postgresql` package (initdb, pg_ctl), installed the same way; without it they are skipped.
 system-deps:
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so'; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
@@ -21,6 +22,14 @@ system-deps:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
 	  else \
 	    echo "warning: Mesa EGL not found; install libegl1 libegl-mesa0 libgl1-mesa-dri for the MuJoCo backend" >&2; \
+	  fi; \
+	fi
+	@if ! ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing PostgreSQL (server for the PostgreSQL tests)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql >/dev/null; \
+	  else \
+	    echo "warning: PostgreSQL server not found; install postgresql to run the PostgreSQL tests" >&2; \
 	  fi; \
 	fi
 

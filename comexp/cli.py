@@ -19,6 +19,7 @@ import os
 import shlex
 import subprocess
 import sys
+import urllib.parse
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -139,27 +140,62 @@ def _git_rev() -> str | None:
 
 def open_db(url: str) -> Any:
     """Open (creating) the results database, or fail with a one-line `ConfigError`."""
-    from comexp.db import ResultsDB
+    from comexp.db import ResultsDB, redact_url
 
     try:
         db = ResultsDB(url)
     except Exception as e:  # OSError, SQLAlchemy errors: say what and where
-        raise ConfigError(f"db: cannot open {url!r}: {str(e).splitlines()[0]}") from None
+        msg = _scrub(str(e).splitlines()[0], url)
+        raise ConfigError(f"db: cannot open {redact_url(url)!r}: {msg}") from None
     try:
         db.check_writable()
     except (ValueError, OSError) as e:
         db.close()
-        raise ConfigError(f"db: {str(e).splitlines()[0]}") from None
+        raise ConfigError(f"db: {_scrub(str(e).splitlines()[0], url)}") from None
     return db
+
+
+def _scrub(text: str, url: str) -> str:
+    """`text` with the database URL's password replaced (the URL itself by its redacted form)."""
+    from comexp.db import redact_url, url_password
+
+    password = url_password(url)
+    if not password:
+        return text
+    text = text.replace(url, redact_url(url))
+    for form in {password, urllib.parse.quote(password, safe=""), urllib.parse.quote(password)}:
+        text = text.replace(form, "***")
+    return text
+
+
+def _scrub_hydra_files(url: str) -> None:
+    """Hydra saved the job's config (and a multirun's) before the job started: take the
+    database password out of those files; the URL stays, with *** for the password."""
+    from comexp.db import url_password
+
+    if not url_password(url):
+        return
+    hc = HydraConfig.get()
+    dirs = [Path(hc.runtime.output_dir) / (hc.output_subdir or ".hydra")]
+    if hc.mode is not None and hc.mode.name == "MULTIRUN":
+        dirs.append(Path(hc.sweep.dir))
+    for d in dirs:
+        for f in (*d.glob("*.yaml"), *d.glob("*.log")):
+            with contextlib.suppress(OSError):
+                text = f.read_text()
+                clean = _scrub(text, url)
+                if clean != text:
+                    f.write_text(clean)
 
 
 def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Validate, expand the grid, run what is not stored yet, write the job's reports."""
-    from comexp.db import episode_key
+    from comexp.db import episode_key, redact_url
     from comexp.workers.pool import EpisodePool, Progress, ensure_ray, run_and_store
 
     job: PreparedJob = prepare_job(cfg)
     exp = job.cfg
+    _scrub_hydra_files(exp.db)
     specs = expand_grid(exp, job.objects, estimator=job.estimator)
     label = f"{exp.backend.name} {exp.floor.name} {exp.speed:g} cm/s"
     db = open_db(exp.db)
@@ -173,15 +209,15 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
             len(specs),
             len(specs) - len(todo),
             len(todo),
-            exp.db,
+            redact_url(exp.db),
         )
         summary: dict[str, Any] = {"episodes": len(specs), "skipped": len(specs) - len(todo)}
         if todo:
             hc = HydraConfig.get()
             job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
             sweep_id = db.start_sweep(
-                command_line=shlex.join(["comexp", *sys.argv[1:]]),
-                config_yaml=OmegaConf.to_yaml(job_cfg, resolve=True),
+                command_line=_scrub(shlex.join(["comexp", *sys.argv[1:]]), exp.db),
+                config_yaml=_scrub(OmegaConf.to_yaml(job_cfg, resolve=True), exp.db),
                 job_name=Path(hc.runtime.output_dir).name,  # ties the sweep to its folder
                 versions=_versions(),
                 git_rev=_git_rev(),
@@ -217,9 +253,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         from comexp.reports import write_job_reports
 
         out_dir = HydraConfig.get().runtime.output_dir
-        paths, text = write_job_reports(
-            db, out_dir, backend=exp.backend.name, floor=exp.floor.name, speed_cm_s=exp.speed
-        )
+        paths, text = write_job_reports(db, out_dir, keys, job=label)
         if text:
             print(text)
         if paths:
@@ -270,12 +304,37 @@ def _die(message: str, code: int) -> None:
     sys.exit(code)
 
 
+def _scrub_log_records(argv: list[str]) -> None:
+    """A `db=URL` override with a password: every log record (Hydra's launcher lists each
+    job's overrides, our own lines name the database) shows the URL with *** instead."""
+    from comexp.db import url_password
+
+    urls = [a.partition("=")[2] for a in argv if a.lstrip("+~").startswith("db=")]
+    urls = [u for url in urls for u in url.split(",") if url_password(u)]  # multirun lists
+    if not urls:
+        return
+    previous = logging.getLogRecordFactory()
+
+    def factory(*args: Any, **kwargs: Any) -> logging.LogRecord:
+        record = previous(*args, **kwargs)
+        text = record.getMessage()
+        clean = text
+        for url in urls:
+            clean = _scrub(clean, url)
+        if clean != text:
+            record.msg, record.args = clean, ()
+        return record
+
+    logging.setLogRecordFactory(factory)
+
+
 def main() -> None:
     """Console script. Hydra would print multi-line errors; we ask it to raise (unless the
     user set HYDRA_FULL_ERROR=1 to see everything) and print one line instead."""
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
+    _scrub_log_records(sys.argv[1:])
     user_full = os.environ.get("HYDRA_FULL_ERROR") == "1"
     os.environ["HYDRA_FULL_ERROR"] = "1"
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")

@@ -1,6 +1,8 @@
 """Results database: one row per episode, one per push, one per sweep (SQLAlchemy 2).
 
-SQLite in WAL mode is the embedded default; any SQLAlchemy URL (e.g. PostgreSQL) works too.
+SQLite in WAL mode is the embedded default; any SQLAlchemy URL works too. PostgreSQL needs
+the psycopg 3 driver (``pip install 'comexp[postgres]'``); a ``postgresql://`` URL uses it.
+A password in a URL is never printed or stored: `redact_url` is what goes into messages.
 Why the SQLite details matter:
 - the driver alone writes, in short ``BEGIN IMMEDIATE`` transactions with a long busy timeout,
   so two writers (two sweeps on one file) queue instead of failing with "database is locked";
@@ -58,6 +60,7 @@ KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
 _FLOAT_TOL = 1e-9  # condition filters compare stored floats with this tolerance
+_SCHEMA_LOCK_ID = 0x636F6D6578  # "comex": PostgreSQL advisory lock taken while creating tables
 
 
 # --------------------------------------------------------------------------- episode key
@@ -282,8 +285,53 @@ class EpisodeFilter:
 
 
 # --------------------------------------------------------------------------- database
+POSTGRES_HINT = "pip install 'comexp[postgres]' (psycopg 3)"
+
+
 def _is_url(target: str) -> bool:
     return "://" in target
+
+
+def normalize_url(url: str | URL) -> URL:
+    """`postgresql://` means psycopg 3 here (SQLAlchemy's own default would be psycopg2)."""
+    u = make_url(url)
+    if u.drivername in ("postgresql", "postgres"):
+        u = u.set(drivername="postgresql+psycopg")
+    return u
+
+
+def redact_url(url: str | os.PathLike[str]) -> str:
+    """The database location as it may be printed, logged or stored: no password."""
+    text = os.fspath(url)
+    if not _is_url(text):
+        return text
+    try:
+        u = make_url(text)
+    except Exception:  # noqa: BLE001 - not a URL SQLAlchemy understands: hide after the scheme
+        scheme, _, rest = text.partition("://")
+        return f"{scheme}://***@{rest.rpartition('@')[2]}" if "@" in rest else text
+    return u.render_as_string(hide_password=True) if u.password else text
+
+
+def url_password(url: str) -> str | None:
+    """The password written in a URL (to scrub it from files), None when there is none."""
+    if not _is_url(url):
+        return None
+    try:
+        return make_url(url).password
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def _create_engine(url: str | URL, **kwargs: Any) -> Engine:
+    """`create_engine` with a one-line error when the database's driver is not installed."""
+    u = normalize_url(url)
+    try:
+        return create_engine(u, **kwargs)
+    except ImportError as exc:
+        backend = u.get_backend_name()
+        hint = POSTGRES_HINT if backend == "postgresql" else f"install a driver for {backend}"
+        raise ValueError(f"no database driver for {backend} ({exc.name}): {hint}") from None
 
 
 def _sqlite_file(url: str | URL) -> Path | None:
@@ -311,7 +359,9 @@ class ResultsDB:
             # Built, not parsed: a file name may contain '?', '#' or '%'.
             self.url = URL.create("sqlite+pysqlite", database=str(self.path))
         self.where = (
-            str(self.path) if self.path is not None else make_url(self.url).render_as_string()
+            str(self.path)
+            if self.path is not None
+            else make_url(self.url).render_as_string(hide_password=True)
         )
         self.is_sqlite = make_url(self.url).get_backend_name() == "sqlite"
         if readonly:
@@ -324,10 +374,14 @@ class ResultsDB:
         try:
             if self.path is not None:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
-            engine = create_engine(self.url)
+            engine = _create_engine(self.url)
             if self.is_sqlite:
                 _install_sqlite_hooks(engine, begin="BEGIN IMMEDIATE", wal=True)
             with engine.begin() as conn:  # serialised: two processes may create the schema
+                if conn.dialect.name == "postgresql":
+                    # concurrent CREATE TABLEs collide in PostgreSQL's catalog (duplicate key
+                    # in pg_type): one creator at a time; the lock ends with the transaction
+                    conn.exec_driver_sql(f"SELECT pg_advisory_xact_lock({_SCHEMA_LOCK_ID})")
                 Base.metadata.create_all(conn)
                 version = conn.execute(select(META.c.value).where(META.c.key == "schema")).scalar()
                 if version is None:
@@ -361,7 +415,11 @@ class ResultsDB:
                 except OperationalError as exc2:
                     raise ValueError(f"cannot read database {self.path}: {_reason(exc2)}") from exc2
             return engine
-        engine = create_engine(self.url)
+        kwargs: dict[str, Any] = {}
+        if make_url(self.url).get_backend_name() == "postgresql":
+            # every transaction of this handle is READ ONLY: the server refuses writes
+            kwargs["connect_args"] = {"options": "-c default_transaction_read_only=on"}
+        engine = _create_engine(self.url, **kwargs)
         if self.is_sqlite:
             _install_sqlite_hooks(engine, begin="BEGIN", wal=False, query_only=True)
         try:
@@ -374,7 +432,7 @@ class ResultsDB:
         assert self.path is not None
         query = {"mode": "ro", "uri": "true"} | ({"immutable": "1"} if immutable else {})
         uri_path = "file:" + urllib.parse.quote(self.path.resolve().as_posix())
-        engine = create_engine(URL.create("sqlite+pysqlite", database=uri_path, query=query))
+        engine = _create_engine(URL.create("sqlite+pysqlite", database=uri_path, query=query))
         _install_sqlite_hooks(engine, begin="BEGIN", wal=False, query_only=True)
         return engine
 
@@ -526,6 +584,37 @@ class ResultsDB:
             q = q.limit(limit)
         with self.engine.connect() as conn:
             return [dict(m) for m in conn.execute(q).mappings()]
+
+    def episodes_by_keys(
+        self, keys: Iterable[str], *, columns: Sequence[str] | None = None
+    ) -> list[dict[str, Any]]:
+        """The stored episodes among `keys` (a job's own grid), by id."""
+        cols = list(EPISODES.c) if columns is None else [EPISODES.c[c] for c in columns]
+        wanted = list(dict.fromkeys(keys))
+        out: list[dict[str, Any]] = []
+        with self.engine.connect() as conn:
+            for i in range(0, len(wanted), _IN_CHUNK):
+                chunk = wanted[i : i + _IN_CHUNK]
+                q = select(*cols, EPISODES.c.id.label("_id")).where(
+                    EPISODES.c.episode_key.in_(chunk)
+                )
+                out += [dict(m) for m in conn.execute(q).mappings()]
+        out.sort(key=lambda r: r["_id"])
+        for r in out:
+            del r["_id"]
+        return out
+
+    def episode(self, episode_id: int) -> dict[str, Any]:
+        """One episode row (all columns); ValueError naming the stored range when absent."""
+        with self.engine.connect() as conn:
+            row = conn.execute(select(EPISODES).where(EPISODES.c.id == episode_id)).mappings()
+            found = row.first()
+            if found is None:
+                ids = select(func.min(EPISODES.c.id), func.max(EPISODES.c.id))
+                lo, hi = conn.execute(ids).one()
+                stored = "none stored" if lo is None else f"stored ids {lo}..{hi}"
+                raise ValueError(f"no episode with id {episode_id} ({stored})")
+            return dict(found)
 
     def count(self, flt: EpisodeFilter | None = None) -> int:
         flt = flt or EpisodeFilter()

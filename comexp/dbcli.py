@@ -1,7 +1,10 @@
-"""`comexp-db`: query the results database (read-only): tables, summary, episodes, sweeps, plots.
+"""`comexp-db`: query the results database (read-only): tables, summary, episodes, sweeps, plots,
+and one episode drawn (`show`).
 
-The database is always opened read-only, so a query can run beside a sweep that is writing and
-can never change stored results. Every error is one line on stderr and a non-zero exit.
+The database is always opened read-only (SQLite `mode=ro`, PostgreSQL read-only transactions),
+so a query can run beside a sweep that is writing and can never change stored results. Every
+error is one line on stderr and a non-zero exit. A filter that matches nothing is not an error:
+the result is empty (a CSV keeps its header), a note on stderr says why, and the exit is 0.
 """
 
 from __future__ import annotations
@@ -151,6 +154,10 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser("plot", help="draw the figures (PNG) into --out")
     _add_condition_filters(pl)
     pl.add_argument("--out", required=True, metavar="DIR")
+
+    sh = sub.add_parser("show", help="draw one episode: outline, pushes, CoM region, CoMs")
+    sh.add_argument("episode_id", type=_pos_int, metavar="EPISODE_ID")
+    sh.add_argument("--out", required=True, metavar="FILE.png")
     return p
 
 
@@ -192,12 +199,13 @@ _HINT_COLUMNS = {
 }
 
 
-def _require_matches(db: ResultsDB, flt: EpisodeFilter) -> None:
-    """No match -> one line naming the filters that match nothing on their own, with choices."""
+def _no_match_note(db: ResultsDB, flt: EpisodeFilter) -> str | None:
+    """None when episodes match; else one line naming the filters that match nothing on their
+    own, with the stored choices (a note for stderr: an empty result is not an error)."""
     if db.count(flt) > 0:
-        return
+        return None
     if db.count() == 0:
-        raise CliError(f"no episodes stored in {db.where}")
+        return f"no episodes stored in {db.where}"
     hints = []
     for name, column in _HINT_COLUMNS.items():
         v = getattr(flt, name)
@@ -205,7 +213,7 @@ def _require_matches(db: ResultsDB, flt: EpisodeFilter) -> None:
             stored = ", ".join(_fmt(x) for x in db.distinct(column) if x is not None)
             hints.append(f"{name}={_fmt(v)} matches nothing (stored: {stored})")
     detail = "; ".join(hints) if hints else "the filters match nothing together"
-    raise CliError(f"no episodes match {flt.describe()}: {detail}")
+    return f"no episodes match {flt.describe()}: {detail}"
 
 
 def _fmt(v: Any) -> str:
@@ -244,14 +252,25 @@ def _episode_columns(spec: str | None) -> list[str]:
     return cols
 
 
+def _note(text: str) -> None:
+    print(f"comexp-db: note: {text}", file=sys.stderr)
+
+
 def _run(args: argparse.Namespace, out: Any) -> None:
+    if args.command == "show":
+        _check_image_path(args.out)
     db = ResultsDB(args.db, readonly=True)
     try:
         if args.command == "sweeps":
             _sweeps(db, args, out)
             return
+        if args.command == "show":
+            _show(db, args, out)
+            return
         flt = _filter(args)
-        _require_matches(db, flt)
+        note = _no_match_note(db, flt)
+        if note is not None:
+            _note(note)
         if args.command == "table":
             tables = condition_tables(db, flt)
             if args.format == "csv":
@@ -276,9 +295,31 @@ def _run(args: argparse.Namespace, out: Any) -> None:
         db.close()
 
 
+def _check_image_path(path: str) -> None:
+    from matplotlib.figure import Figure
+
+    kinds = Figure().canvas.get_supported_filetypes()
+    suffix = os.path.splitext(path)[1].lstrip(".").lower()
+    if suffix not in kinds:
+        raise CliError(f"--out {path!r}: name an image file ({', '.join(sorted(kinds))})")
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise CliError(f"--out {path!r}: directory {parent!r} does not exist")
+
+
+def _show(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
+    from comexp.plots import plot_episode
+
+    row = db.episode(args.episode_id)
+    plot_episode(row, db.pushes(args.episode_id), args.out)
+    out.write(f"{args.out}\n")
+
+
 def _sweeps(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
     sweeps = db.sweeps()
     if args.show is None:
+        if not sweeps:
+            _note(f"no sweeps stored in {db.where}")
         out.write(_rows_out(sweeps, SWEEP_COLUMNS, "md"))
         return
     match = [s for s in sweeps if s["id"] == args.show]

@@ -1,19 +1,32 @@
-"""Figures in the spirit of the paper's Figs. 3-5, drawn from the results database.
+"""Figures in the spirit of the paper's Figs. 3-5, drawn from the results database, plus the
+Izz figure, a backend comparison and one episode drawn in its object's frame.
 
-- `error_per_object_<backend>_<floor>.png` (Figs. 3, 4): per object, mean +- std of error_cm,
-  one bar per speed side by side (dynamic 40 cm/s next to quasi-static 4 cm/s), all frictions
-  of that floor pooled.
-- `friction_influence_<backend>.png` (Fig. 5): per friction condition (floor mu, pusher mu),
-  box plots of error_cm over all objects, one box per speed side by side.
+Every figure groups episodes with `comexp.reports.group_episodes` (the one grouping rule) and
+pools only the columns its caption names:
 
-Only ok episodes are drawn; the number of failed ones is printed in each title so that a clean
-plot cannot hide failures. matplotlib's object API (no pyplot) keeps this headless and
-thread-safe (Agg).
+- `error_per_object_<condition>.png` (Figs. 3, 4): per object and all objects, one box per
+  speed side by side; frictions and Izz pooled (as the paper's tables); the paper's
+  all-objects mean is marked (red star) where the condition is the paper's.
+- `friction_influence_<condition>.png` (Fig. 5): per floor and pusher friction, one box per
+  speed; Izz pooled.
+- `izz_influence_<condition>.png`: per Izz scale (and floor), one box per speed; frictions
+  pooled.
+- `backends_<condition>.png`: per floor and speed, one box per backend on the same condition
+  (drawn when at least two backends ran it); frictions and Izz pooled.
+
+Errors are skewed (bounded below by 0), so every figure draws box plots: median, IQR box,
+whiskers at 1.5 IQR, outliers, and the mean as a white dot; never a mean +- std bar that would
+reach below zero. n (ok episodes) is written above each box. Only ok episodes are drawn; the
+number of failed ones is in each title. matplotlib's object API (no pyplot) keeps this headless
+and thread-safe (Agg).
 """
 
 from __future__ import annotations
 
+import json
+import math
 from collections import defaultdict
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,23 +34,26 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from comexp.db import EpisodeFilter, ResultsDB  # noqa: E402
-from comexp.reports import ErrorStats, fmt_num, natural_key  # noqa: E402
-
-_COLUMNS = (
-    "backend",
-    "floor",
-    "mu_floor_x",
-    "mu_floor_y",
-    "mu_pusher",
-    "speed_cm_s",
-    "object",
-    "status",
-    "error_cm",
+from comexp.reports import (  # noqa: E402
+    ALL_OBJECTS,
+    EPISODE_COLUMNS,
+    FRICTION_COLUMNS,
+    PAPER_POOL,
+    Condition,
+    fmt_num,
+    group_episodes,
+    natural_key,
+    ok_error,
+    paper_mean_cm,
+    pooled_values,
+    tables_from_rows,
 )
-_SPEED_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+
+_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
 
 def speed_name(speed_cm_s: float) -> str:
@@ -45,58 +61,142 @@ def speed_name(speed_cm_s: float) -> str:
     return f"{fmt_num(speed_cm_s)} cm/s{kind}"
 
 
-def _ok(r: dict[str, Any]) -> bool:
-    return r["status"] == "ok" and r["error_cm"] is not None
+def _sort_any(v: Any) -> tuple:
+    return tuple((0, x) if isinstance(x, int | float) else (1, str(x)) for x in v)
 
 
-def plot_error_per_object(rows: list[dict[str, Any]], out_dir: Path) -> list[Path]:
-    by_floor: dict[tuple[str, str], list[dict[str, Any]]] = defaultdict(list)
-    for r in rows:
-        by_floor[(r["backend"], r["floor"])].append(r)
-    paths = []
-    for (backend, floor), group in sorted(by_floor.items()):
-        speeds = sorted({r["speed_cm_s"] for r in group}, reverse=True)
-        objects = sorted({r["object"] for r in group}, key=natural_key)
-        n_failed = sum(not _ok(r) for r in group)
-        width = 0.8 / len(speeds)
-        fig = Figure(figsize=(max(6.0, 0.55 * len(objects) + 2), 4.2), layout="constrained")
-        ax = fig.add_subplot()
-        for i, v in enumerate(speeds):
-            stats = [
-                ErrorStats.of(
-                    [
-                        r["error_cm"]
-                        for r in group
-                        if r["object"] == o and r["speed_cm_s"] == v and _ok(r)
-                    ]
-                )
-                for o in objects
-            ]
-            xs = [j + (i - (len(speeds) - 1) / 2) * width for j in range(len(objects))]
-            ax.bar(
-                xs,
-                [s.mean if s.n else 0.0 for s in stats],
-                width,
-                yerr=[s.std if s.n else 0.0 for s in stats],
-                capsize=2,
-                color=_SPEED_COLORS[i % len(_SPEED_COLORS)],
-                label=speed_name(v),
-            )
-        ax.set_xticks(range(len(objects)), objects, rotation=45, ha="right")
-        ax.set_ylabel("CoM error (cm), mean ± std")
-        ax.set_ylim(bottom=0)
-        ax.set_title(
-            f"{backend}, {floor} floor: error per object ({n_failed} failed episodes excluded)"
+Rows = list[dict[str, Any]]
+
+
+def _panels(
+    rows: Rows, pool: Sequence[str], axes: Sequence[str]
+) -> dict[Condition, dict[Condition, Rows]]:
+    """group_episodes(rows, pool), then the groups per panel (the condition without `axes`)."""
+    out: dict[Condition, dict[Condition, Rows]] = defaultdict(dict)
+    for cond, group in group_episodes(rows, pool).items():
+        out[cond.pooling(axes)][cond] = group
+    return dict(out)
+
+
+def _box_figure(
+    *,
+    cells: Mapping[tuple[Any, Any], list[float]],  # (x key, series key) -> errors
+    xkeys: Sequence[Any],
+    xlabel: Callable[[Any], str],
+    series: Sequence[Any],
+    series_label: Callable[[Any], str],
+    title: str,
+    path: Path,
+    marks: Mapping[tuple[Any, Any], float] | None = None,
+    xtitle: str = "",
+) -> Path:
+    width = 0.8 / max(1, len(series))
+    fig = Figure(figsize=(max(6.5, 0.6 * len(xkeys) * len(series) + 2), 4.8), layout="constrained")
+    ax = fig.add_subplot()
+    handles = []
+    top = max((max(v) for v in cells.values() if v), default=1.0)
+    for i, s in enumerate(series):
+        data, pos = [], []
+        for j, x in enumerate(xkeys):
+            errs = cells.get((x, s), [])
+            if errs:
+                data.append(errs)
+                pos.append(j + (i - (len(series) - 1) / 2) * width)
+        if not data:
+            continue
+        color = _COLORS[i % len(_COLORS)]
+        bp = ax.boxplot(
+            data,
+            positions=pos,
+            widths=width * 0.85,
+            patch_artist=True,
+            showmeans=True,
+            meanprops={"marker": "o", "markerfacecolor": "white", "markeredgecolor": "black"},
+            medianprops={"color": "black"},
+            flierprops={"markersize": 3},
+            manage_ticks=False,
         )
-        ax.legend()
-        path = out_dir / f"error_per_object_{backend}_{floor}.png"
-        fig.savefig(path, dpi=110)
-        paths.append(path)
+        for box in bp["boxes"]:
+            box.set_facecolor(color)
+            box.set_alpha(0.6)
+        for p, errs in zip(pos, data, strict=True):
+            ax.text(p, max(errs) + 0.02 * top, f"{len(errs)}", ha="center", va="bottom", fontsize=6)
+        handles.append((bp["boxes"][0], series_label(s)))
+    star = None
+    for (x, s), value in (marks or {}).items():
+        if x in xkeys and s in series:
+            i, j = list(series).index(s), list(xkeys).index(x)
+            p = j + (i - (len(series) - 1) / 2) * width
+            star = ax.scatter([p], [value], marker="*", s=90, color="red", zorder=5)
+    if star is not None:
+        handles.append((star, "paper, all objects (mean)"))
+    ax.set_xticks(range(len(xkeys)), [xlabel(x) for x in xkeys], fontsize=8)
+    ax.set_xlim(-0.6, len(xkeys) - 0.4)
+    ax.set_ylim(bottom=0, top=top * 1.12)
+    ax.set_ylabel("CoM error (cm): box = IQR, line = median, dot = mean")
+    if xtitle:
+        ax.set_xlabel(xtitle + " (numbers: ok episodes per box)")
+    ax.set_title(title, fontsize=9)
+    if handles:
+        ax.legend([h for h, _ in handles], [t for _, t in handles], fontsize=8)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def _failed(groups: Mapping[Condition, Rows]) -> int:
+    return sum(ok_error(r) is None for g in groups.values() for r in g)
+
+
+def _pooled_caption(groups: Mapping[Condition, Rows], pool: Sequence[str]) -> str:
+    rows = [r for g in groups.values() for r in g]
+    vals = pooled_values(rows, pool)
+    parts = []
+    if "mu_floor_x" in vals and "mu_floor_y" in vals:
+        pairs = zip(vals.pop("mu_floor_x"), vals.pop("mu_floor_y"), strict=True)
+        parts.append(
+            "floor (mu_x, mu_y) {"
+            + ", ".join(f"({fmt_num(a)}, {fmt_num(b)})" for a, b in pairs)
+            + "}"
+        )
+    parts += [f"{c} {{{', '.join(fmt_num(v) for v in vs)}}}" for c, vs in vals.items()]
+    return "; ".join(parts)
+
+
+def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
+    paths = []
+    for panel, groups in _panels(rows, PAPER_POOL, ("speed_cm_s",)).items():
+        cells: dict[tuple[Any, Any], list[float]] = defaultdict(list)
+        marks: dict[tuple[Any, Any], float] = {}
+        for cond, group in groups.items():
+            for r in group:
+                e = ok_error(r)
+                if e is not None:
+                    cells[(r["object"], cond.speed_cm_s)].append(e)
+                    cells[(ALL_OBJECTS, cond.speed_cm_s)].append(e)
+            (table,) = tables_from_rows(group, PAPER_POOL)
+            mark = paper_mean_cm(table)
+            if mark is not None:
+                marks[(ALL_OBJECTS, cond.speed_cm_s)] = mark
+        objects = sorted({r["object"] for g in groups.values() for r in g}, key=natural_key)
+        speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
+        title = (
+            f"{panel.label()}: error per object ({_failed(groups)} failed excluded)\n"
+            f"pooled: {_pooled_caption(groups, PAPER_POOL)}"
+        )
+        paths.append(
+            _box_figure(
+                cells=cells,
+                xkeys=[*objects, ALL_OBJECTS],
+                xlabel=str,
+                series=speeds,
+                series_label=speed_name,
+                title=title,
+                path=out_dir / f"error_per_object_{panel.slug()}.png",
+                marks=marks,
+                xtitle="object",
+            )
+        )
     return paths
-
-
-def _friction_label(r: dict[str, Any]) -> tuple[Any, ...]:
-    return (r["floor"], r["mu_floor_x"], r["mu_floor_y"], r["mu_pusher"])
 
 
 def _friction_text(key: tuple[Any, ...]) -> str:
@@ -105,58 +205,126 @@ def _friction_text(key: tuple[Any, ...]) -> str:
     return f"{floor}\n{f}\nmu_p={fmt_num(p)}"
 
 
-def plot_friction_influence(rows: list[dict[str, Any]], out_dir: Path) -> list[Path]:
-    by_backend: dict[str, list[dict[str, Any]]] = defaultdict(list)
-    for r in rows:
-        by_backend[r["backend"]].append(r)
+def _by_axis(
+    rows: Rows,
+    pool: Sequence[str],
+    axes: Sequence[str],
+    xkey: Callable[[Condition], Any],
+    skey: Callable[[Condition], Any],
+) -> list[tuple[Condition, dict[Condition, Rows], dict[tuple[Any, Any], list[float]]]]:
+    out = []
+    for panel, groups in _panels(rows, pool, axes).items():
+        cells: dict[tuple[Any, Any], list[float]] = defaultdict(list)
+        for cond, group in groups.items():
+            cells[(xkey(cond), skey(cond))] += [e for r in group if (e := ok_error(r)) is not None]
+        out.append((panel, groups, cells))
+    return out
+
+
+def plot_friction_influence(rows: Rows, out_dir: Path) -> list[Path]:
+    axes = ("floor", *FRICTION_COLUMNS, "speed_cm_s")
     paths = []
-    for backend, group in sorted(by_backend.items()):
-        speeds = sorted({r["speed_cm_s"] for r in group}, reverse=True)
-        frictions = sorted({_friction_label(r) for r in group})
-        n_failed = sum(not _ok(r) for r in group)
-        width = 0.8 / len(speeds)
-        fig = Figure(figsize=(max(6.0, 1.4 * len(frictions) + 2), 4.5), layout="constrained")
-        ax = fig.add_subplot()
-        handles = []
-        for i, v in enumerate(speeds):
-            data, pos = [], []
-            for j, fk in enumerate(frictions):
-                errs = [
-                    r["error_cm"]
-                    for r in group
-                    if _ok(r) and r["speed_cm_s"] == v and _friction_label(r) == fk
-                ]
-                if errs:
-                    data.append(errs)
-                    pos.append(j + (i - (len(speeds) - 1) / 2) * width)
-            if not data:
-                continue
-            color = _SPEED_COLORS[i % len(_SPEED_COLORS)]
-            bp = ax.boxplot(
-                data,
-                positions=pos,
-                widths=width * 0.9,
-                patch_artist=True,
-                medianprops={"color": "black"},
-                showfliers=True,
-                manage_ticks=False,
-            )
-            for box in bp["boxes"]:
-                box.set_facecolor(color)
-                box.set_alpha(0.6)
-            handles.append((bp["boxes"][0], speed_name(v)))
-        ax.set_xticks(range(len(frictions)), [_friction_text(f) for f in frictions], fontsize=8)
-        ax.set_xlim(-0.6, len(frictions) - 0.4)
-        ax.set_ylabel("CoM error (cm)")
-        ax.set_ylim(bottom=0)
-        ax.set_title(
-            f"{backend}: influence of floor and pusher friction ({n_failed} failed excluded)"
+    for panel, groups, cells in _by_axis(
+        rows,
+        ("izz_scale",),
+        axes,
+        lambda c: (c.floor, c.mu_floor_x, c.mu_floor_y, c.mu_pusher),
+        lambda c: c.speed_cm_s,
+    ):
+        xkeys = sorted({x for x, _ in cells}, key=_sort_any)
+        speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
+        title = (
+            f"{panel.label()}: influence of floor and pusher friction "
+            f"({_failed(groups)} failed excluded)\n"
+            f"pooled: {_pooled_caption(groups, ('izz_scale',))}"
         )
-        if handles:
-            ax.legend([h for h, _ in handles], [t for _, t in handles])
-        path = out_dir / f"friction_influence_{backend}.png"
-        fig.savefig(path, dpi=110)
-        paths.append(path)
+        paths.append(
+            _box_figure(
+                cells=cells,
+                xkeys=xkeys,
+                xlabel=_friction_text,
+                series=speeds,
+                series_label=speed_name,
+                title=title,
+                path=out_dir / f"friction_influence_{panel.slug()}.png",
+                xtitle="floor and pusher friction",
+            )
+        )
+    return paths
+
+
+def plot_izz_influence(rows: Rows, out_dir: Path) -> list[Path]:
+    axes = ("floor", "izz_scale", "speed_cm_s")
+    paths = []
+    for panel, groups, cells in _by_axis(
+        rows,
+        FRICTION_COLUMNS,
+        axes,
+        lambda c: (c.floor, c.izz_scale),
+        lambda c: c.speed_cm_s,
+    ):
+        xkeys = sorted({x for x, _ in cells}, key=_sort_any)
+        speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
+        title = (
+            f"{panel.label()}: influence of Izz ({_failed(groups)} failed excluded)\n"
+            f"pooled: {_pooled_caption(groups, FRICTION_COLUMNS)}"
+        )
+        paths.append(
+            _box_figure(
+                cells=cells,
+                xkeys=xkeys,
+                xlabel=lambda k: f"{k[0]}\nIzz x{fmt_num(k[1])}",
+                series=speeds,
+                series_label=speed_name,
+                title=title,
+                path=out_dir / f"izz_influence_{panel.slug()}.png",
+                xtitle="floor and Izz scale",
+            )
+        )
+    return paths
+
+
+def plot_backends(rows: Rows, out_dir: Path) -> list[Path]:
+    """Backends side by side on the same condition (only where two or more ran it)."""
+    axes = ("backend", "floor", "speed_cm_s")
+    paths = []
+    for panel, groups, cells in _by_axis(
+        rows,
+        PAPER_POOL,
+        axes,
+        lambda c: (c.floor, c.speed_cm_s),
+        lambda c: c.backend,
+    ):
+        backends = sorted({c.backend for c in groups})
+        per_x: dict[Any, set[str]] = defaultdict(set)
+        for x, b in cells:
+            per_x[x].add(b)
+        xkeys = sorted((x for x, bs in per_x.items() if len(bs) > 1), key=_sort_any)
+        if len(backends) < 2 or not xkeys:
+            continue
+        marks = {}
+        for cond, group in groups.items():
+            (table,) = tables_from_rows(group, PAPER_POOL)
+            mark = paper_mean_cm(table)
+            if mark is not None:
+                marks[((cond.floor, cond.speed_cm_s), cond.backend)] = mark
+        title = (
+            f"{panel.label() or 'all'}: backends on the same condition "
+            f"({_failed(groups)} failed excluded)\npooled: {_pooled_caption(groups, PAPER_POOL)}"
+        )
+        paths.append(
+            _box_figure(
+                cells=cells,
+                xkeys=xkeys,
+                xlabel=lambda k: f"{k[0]}\n{speed_name(k[1])}",
+                series=backends,
+                series_label=str,
+                title=title,
+                path=out_dir / f"backends_{panel.slug() or 'all'}.png",
+                marks=marks,
+                xtitle="floor and speed",
+            )
+        )
     return paths
 
 
@@ -164,7 +332,116 @@ def make_plots(db: ResultsDB, out_dir: str | Path, flt: EpisodeFilter | None = N
     """Write all figures for the selected episodes; returns the PNG paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rows = db.episodes(flt, columns=_COLUMNS, order_by_id=False)
+    rows = db.episodes(flt, columns=EPISODE_COLUMNS, order_by_id=False)
     if not rows:
         return []
-    return plot_error_per_object(rows, out) + plot_friction_influence(rows, out)
+    return (
+        plot_error_per_object(rows, out)
+        + plot_friction_influence(rows, out)
+        + plot_izz_influence(rows, out)
+        + plot_backends(rows, out)
+    )
+
+
+# --------------------------------------------------------------------------- one episode
+def reconstruct_regions(
+    spec: Mapping[str, Any], estimator_json: str, pushes: Sequence[Mapping[str, Any]]
+) -> tuple[float, list[np.ndarray]]:
+    """The CoM region before and after each push, in the object frame (m), rebuilt from the
+    stored pushes: the hull's pixel grid at the top face's pixel size, then Algorithm 2 with
+    each stored contact, direction and measured rotation. The grid's anchor differs from the
+    one the episode's first image gave, so sizes can differ from `region_px` by a few pixels."""
+    import shapely
+
+    from comexp.estimator import EstimatorSettings, update_region
+    from comexp.perception import hull_region
+    from comexp.results import _from_json
+    from comexp.scene import CameraSpec
+
+    cam = CameraSpec()
+    pixel_m = cam.model().pixel_size_m(cam.height_m - float(spec["height_cm"]) / 100.0)
+    outline_m = np.asarray(spec["outline_cm"], dtype=float) / 100.0
+    hull = np.asarray(shapely.convex_hull(shapely.Polygon(outline_m)).exterior.coords)[:-1]
+    settings = _from_json(EstimatorSettings, json.loads(estimator_json))
+    region = hull_region(hull, pixel_m)
+    regions = [region]
+    for p in pushes:
+        region, _ = update_region(
+            region,
+            (p["contact_x_cm"] / 100.0, p["contact_y_cm"] / 100.0),
+            (p["dir_x"], p["dir_y"]),
+            p["rotation_deg"],
+            settings,
+            pixel_m,
+        )
+        regions.append(region)
+    return pixel_m, regions
+
+
+def plot_episode(
+    row: Mapping[str, Any], pushes: Sequence[Mapping[str, Any]], path: str | Path
+) -> Path:
+    """One episode in its object's frame: outline, each push (contact, direction, measured and
+    true rotation, decision), the CoM region after it, the true and the estimated CoM."""
+    spec = json.loads(row["spec"])
+    _, regions = reconstruct_regions(spec, row["estimator"], pushes)
+    outline = np.asarray(spec["outline_cm"], dtype=float)
+    closed = np.vstack([outline, outline[:1]])
+    n = len(regions)
+    cols = min(3, n)
+    nrows = math.ceil(n / cols)
+    fig = Figure(figsize=(4.0 * cols, 4.0 * nrows + 0.6), layout="constrained")
+    axs = fig.subplots(nrows, cols, squeeze=False)
+    true = (row["true_com_x_cm"], row["true_com_y_cm"])
+    est = None if row["est_com_x_cm"] is None else (row["est_com_x_cm"], row["est_com_y_cm"])
+    pad = 0.25 * float(np.ptp(outline, axis=0).max())
+    lo, hi = outline.min(axis=0) - pad, outline.max(axis=0) + pad
+    for i, ax in enumerate(axs.ravel()):
+        if i >= n:
+            ax.set_axis_off()
+            continue
+        ax.plot(closed[:, 0], closed[:, 1], color="black", lw=1.2)
+        reg = regions[i] * 100.0
+        ax.scatter(reg[:, 0], reg[:, 1], s=2, color="tab:green", alpha=0.5, lw=0)
+        for j, p in enumerate(pushes[:i]):
+            c = np.array([p["contact_x_cm"], p["contact_y_cm"]])
+            d = np.array([p["dir_x"], p["dir_y"]])
+            current = j == i - 1
+            color = "tab:red" if current else "0.6"
+            ax.annotate(
+                "",
+                xy=tuple(c),
+                xytext=tuple(c - 2.5 * d),
+                arrowprops={"arrowstyle": "->", "color": color, "lw": 1.6 if current else 0.8},
+            )
+            ax.text(*(c - 2.9 * d), str(p["k"]), fontsize=7, color=color, ha="center")
+        ax.plot(*true, marker="x", color="blue", ms=9, mew=2, ls="", label="true CoM")
+        if est is not None and i == n - 1:
+            ax.plot(*est, marker="+", color="tab:red", ms=11, mew=2, ls="", label="estimate")
+        if i == 0:
+            ax.set_title(f"initial region ({len(reg)} px)", fontsize=8)
+        else:
+            p = pushes[i - 1]
+            ax.set_title(
+                f"push {p['k']}: measured {p['rotation_deg']:+.2f} deg, "
+                f"true {p['rotation_true_deg']:+.2f} deg\n{p['decision']}: region {len(reg)} px "
+                f"(stored {p['region_px']})",
+                fontsize=8,
+            )
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        if i == n - 1:
+            ax.legend(fontsize=7, loc="lower right")
+    err = "" if row["error_cm"] is None else f", error {row['error_cm']:.2f} cm"
+    status = row["status"] if row["failure"] is None else f"failed: {row['failure']}"
+    cond = Condition.of(row)
+    fig.suptitle(
+        f"episode {row['id']}: {row['object']} CoM {row['com_index']} ({status}{err})\n"
+        f"{cond.label()}; object frame, cm; region reconstructed from the stored pushes",
+        fontsize=9,
+    )
+    out = Path(path)
+    fig.savefig(out, dpi=110)
+    return out

@@ -39,13 +39,13 @@ def direct_stats(path: Path, where: str = "1=1") -> dict[tuple, list[float]]:
     """Errors grouped by (condition..., object), read with plain sqlite3, not with comexp."""
     conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
     q = (
-        "SELECT backend, floor, mu_floor_x, mu_floor_y, mu_pusher, speed_cm_s, object, error_cm "
-        f"FROM episodes WHERE status = 'ok' AND {where}"
+        "SELECT backend, floor, mu_floor_x, mu_floor_y, mu_pusher, speed_cm_s, izz_scale, object, "
+        f"error_cm FROM episodes WHERE status = 'ok' AND {where}"
     )
     groups: dict[tuple, list[float]] = defaultdict(list)
     for *key, err in conn.execute(q):
         groups[tuple(key)].append(err)
-        groups[(*key[:6], "all")].append(err)
+        groups[(*key[:7], "all")].append(err)
     conn.close()
     return groups
 
@@ -55,7 +55,7 @@ def test_table_csv_agrees_with_the_episodes_table(study_path: Path, capsys) -> N
     assert code == 0 and err == ""
     rows = list(csv.DictReader(io.StringIO(out)))
     expected = direct_stats(study_path)
-    assert len(rows) == len(expected) == 10 * 4
+    assert len(rows) == len(expected) == 10 * 2 * 4  # conditions x Izz x (3 objects + all)
     for r in rows:
         key = (
             r["backend"],
@@ -64,17 +64,24 @@ def test_table_csv_agrees_with_the_episodes_table(study_path: Path, capsys) -> N
             float(r["mu_floor_y"]),
             float(r["mu_pusher"]),
             float(r["speed_cm_s"]),
+            float(r["izz_scale"]),
             r["object"],
         )
         errs = expected[key]
         assert int(r["n"]) == len(errs)
         assert float(r["mean"]) == pytest.approx(np.mean(errs), abs=1e-6)
-        assert float(r["std"]) == pytest.approx(np.std(errs), abs=1e-6)
+        if len(errs) > 1:
+            assert float(r["std"]) == pytest.approx(np.std(errs, ddof=1), abs=1e-6)
+        else:
+            assert r["std"] == ""
         assert float(r["max"]) == pytest.approx(max(errs), abs=1e-6)
         assert float(r["min"]) == pytest.approx(min(errs), abs=1e-6)
-    failed = {(r["floor"], r["mu_floor_x"], r["speed_cm_s"], r["object"]): r for r in rows}
-    assert failed[("iso", "0.1", "4", "obj2")]["n_failed"] == "1"
-    assert failed[("iso", "0.1", "40", "obj2")]["n_failed"] == "0"
+    failed = {
+        (r["floor"], r["mu_floor_x"], r["speed_cm_s"], r["izz_scale"], r["object"]): r for r in rows
+    }
+    assert failed[("iso", "0.1", "4", "10", "obj2")]["n_failed"] == "1"
+    assert failed[("iso", "0.1", "4", "1", "obj2")]["n_failed"] == "0"
+    assert failed[("iso", "0.1", "40", "10", "obj2")]["n_failed"] == "0"
 
 
 def test_table_filters_select_conditions(study_path: Path, capsys) -> None:
@@ -87,12 +94,19 @@ def test_table_filters_select_conditions(study_path: Path, capsys) -> None:
         capsys, "--db", db, "table", "--floor", "aniso", "--mu-floor-x", "1", "--speed", "40"
     )
     assert code == 0
-    assert out.count("### ") == 1
-    assert "### pybullet, floor aniso mu_floor_x=1 mu_floor_y=0.1, mu_pusher=0.5, speed 40" in out
+    assert out.count("### ") == 2  # Izz 1 and 10: never pooled
+    assert (
+        "### pybullet, floor aniso mu_floor_x=1 mu_floor_y=0.1, mu_pusher=0.5, speed 40 cm/s, "
+        "Izz x10, rotation vision\n"
+    ) in out
     assert "| object | n | mean | std | max | min |" in out
     code, out, _ = run(capsys, "--db", db, "summary", "--format", "csv", "--speed", "4")
     rows = list(csv.DictReader(io.StringIO(out)))
-    assert len(rows) == 5 and all(r["n_failed"] == "1" and r["n_ok"] == "17" for r in rows)
+    assert len(rows) == 10
+    assert {(r["izz_scale"], r["n_failed"], r["n_ok"]) for r in rows} == {
+        ("1", "0", "9"),
+        ("10", "1", "8"),
+    }
 
 
 def test_episodes_filter_and_export(study_path: Path, capsys) -> None:
@@ -147,6 +161,7 @@ def test_reading_leaves_the_database_byte_identical(study_path: Path, tmp_path: 
         "error_per_object_pybullet_aniso.png",
         "error_per_object_pybullet_iso.png",
         "friction_influence_pybullet.png",
+        "izz_influence_pybullet.png",
     ]
 
 
@@ -157,10 +172,11 @@ def test_reading_leaves_the_database_byte_identical(study_path: Path, tmp_path: 
         (["table", "--speed", "-4"], 2, "must be a finite number >= 0"),
         (["table", "--format", "xls"], 2, "invalid choice: 'xls'"),
         (["table", "--mu-floor", "1", "--mu-floor-x", "1"], 1, "either mu_floor"),
-        (["table", "--backend", "bullet"], 1, "backend=bullet matches nothing (stored: pybullet)"),
-        (["table", "--mu-floor", "0.5"], 1, "mu_floor=0.5 matches nothing (stored: 0.1, 1)"),
-        (["table", "--floor", "aniso", "--mu-pusher", "1"], 1, "match nothing together"),
         (["episodes", "--columns", "id,bogus"], 1, "unknown episode column(s) bogus"),
+        (["show", "999", "--out", "x.png"], 1, "no episode with id 999 (stored ids 1..180)"),
+        (["show", "1", "--out", "x.txt"], 1, "name an image file"),
+        (["show", "1", "--out", "/nonexistent/x.png"], 1, "does not exist"),
+        (["show", "0", "--out", "x.png"], 2, "must be > 0"),
         (["episodes", "--status", "maybe"], 2, "invalid choice: 'maybe'"),
         (["sweeps", "--show", "7"], 1, "no sweep with id 7"),
         (["frobnicate"], 2, "invalid choice: 'frobnicate'"),
@@ -176,6 +192,38 @@ def test_bad_filters_fail_cleanly(study_path: Path, capsys, argv, exit_code, mes
     assert err.count("\n") == 1 and err.startswith("comexp-db") and message in err
 
 
+EMPTY_CSV_HEADER = "id,sweep_id,backend,floor,mu_floor_x"
+
+
+@pytest.mark.parametrize(
+    ("argv", "note"),
+    [
+        (["table", "--backend", "bullet"], "backend=bullet matches nothing (stored: pybullet)"),
+        (["table", "--mu-floor", "0.5"], "mu_floor=0.5 matches nothing (stored: 0.1, 1)"),
+        (["table", "--floor", "aniso", "--mu-pusher", "1"], "match nothing together"),
+        (["summary", "--format", "csv", "--object", "nope"], "object=nope matches nothing"),
+        (["paper", "--speed", "7"], "speed_cm_s=7 matches nothing"),
+        (["episodes", "--status", "failed", "--speed", "40", "--format", "csv"], "together"),
+        (["plot", "--backend", "mujoco", "--out", "PLOTS"], "backend=mujoco matches nothing"),
+    ],
+)
+def test_a_filter_matching_nothing_is_an_empty_result(
+    study_path: Path, tmp_path: Path, capsys, argv, note
+) -> None:
+    """Not an error in a query tool: exit 0, a CSV keeps its header, a note on stderr."""
+    argv = [str(tmp_path / "plots") if a == "PLOTS" else a for a in argv]
+    code, out, err = run(capsys, "--db", str(study_path), *argv)
+    assert code == 0
+    assert err.count("\n") == 1 and err.startswith("comexp-db: note: ") and note in err
+    if argv[0] == "episodes":
+        assert out.startswith(EMPTY_CSV_HEADER) and out.count("\n") == 1
+    elif argv[0] == "summary":
+        assert out.startswith("backend,floor,") and out.count("\n") == 1
+    elif argv[0] == "plot":
+        assert out == "" and not any((tmp_path / "plots").iterdir())
+    assert "| obj1 |" not in out
+
+
 def test_missing_or_foreign_database_fails_cleanly(tmp_path: Path, capsys) -> None:
     code, _, err = run(capsys, "--db", str(tmp_path / "nope.db"), "table")
     assert code == 1 and err == f"comexp-db: error: database not found: {tmp_path / 'nope.db'}\n"
@@ -186,8 +234,10 @@ def test_missing_or_foreign_database_fails_cleanly(tmp_path: Path, capsys) -> No
     assert code == 1 and err.count("\n") == 1 and "not a database" in err
     empty = tmp_path / "empty.db"
     ResultsDB(empty).close()
-    code, _, err = run(capsys, "--db", str(empty), "table")
-    assert code == 1 and "no episodes stored" in err
+    code, out, err = run(capsys, "--db", str(empty), "table", "--format", "csv")
+    assert code == 0 and "no episodes stored" in err and out.startswith("backend,")
+    code, out, err = run(capsys, "--db", str(empty), "sweeps")
+    assert code == 0 and "no sweeps stored" in err and out.startswith("| id |")
 
 
 def test_console_script_is_installed_and_prints_no_traceback(tmp_path: Path) -> None:

@@ -239,7 +239,8 @@ def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path) -> None
     for reason in ("left_view 1", "sim_unstable 1", "timeout 1", "worker_died 1"):
         assert reason in t.stdout
     cells = _table_row(t.stdout, "**all**")
-    assert cells == ["**all**", "8", "1.875", "0.331", "2.000", "1.000", "6"], t.stdout
+    # std is the sample std (ddof = 1): seven 2.0 and one 1.0 -> sqrt(0.875 / 7) = 0.354
+    assert cells == ["**all**", "8", "1.875", "0.354", "2.000", "1.000", "6"], t.stdout
     assert _table_row(t.stdout, "l_shape")[-1] == "1"  # per object too
     # the job's own report in its output folder says the same
     (report,) = (tmp_path / "results" / "runs").glob("*/summary.md")
