@@ -55,7 +55,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from comexp.episode import EpisodeResult, EpisodeSpec
 
-SCHEMA_VERSION = 2  # 2: episodes.worker, episodes.recenter_beyond_cm
+SCHEMA_VERSION = 3  # 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics
 KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
@@ -156,6 +156,8 @@ class Episode(Base):
     height_cm: Mapped[float] = mapped_column(Float)
     push_length_cm: Mapped[float] = mapped_column(Float)
     recenter_beyond_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # what determined the physics (comexp.simulator.physics_identity); part of the episode key
+    physics: Mapped[str] = mapped_column(String(200), default="")
     w1: Mapped[float | None] = mapped_column(Float, nullable=True)
     w2: Mapped[float | None] = mapped_column(Float, nullable=True)
     theta_T_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -745,6 +747,7 @@ def _episode_row(sweep_id: int | None, key: str, r: EpisodeResult) -> dict[str, 
         "height_cm": float(s.height_cm),
         "push_length_cm": float(s.push_length_cm),
         "recenter_beyond_cm": _opt_float(getattr(s, "recenter_beyond_cm", None)),
+        "physics": getattr(s, "physics", "") or "",
         "w1": float(w[0]) if len(w) > 0 else None,
         "w2": float(w[1]) if len(w) > 1 else None,
         "theta_T_deg": _opt_float(getattr(est, "theta_T_deg", None)),

@@ -1,12 +1,12 @@
 """Aggregated error tables (the paper's Tables II and III form), from one grouping rule.
 
 A *condition* is everything that can change a result: one value of each `CONDITION_COLUMNS`
-(backend, floor, frictions, speed, Izz, mass, push protocol and the whole estimator settings,
-stored as canonical JSON). `group_episodes` is the only place that groups episodes: job
-reports, `comexp-db table / summary / paper / plot`, `comexp.load_results` and the bench all
-call it, so no two of them can pool differently. A view that pools on purpose (the paper's
-tables pool frictions and Izz, as the paper does) names the pooled columns and says so in its
-header; every other column still separates.
+(backend, floor, frictions, speed, Izz, mass, push protocol, the whole estimator settings,
+stored as canonical JSON, and the backend's physics identity). `group_episodes` is the only
+place that groups episodes: job reports, `comexp-db table / summary / paper / plot`,
+`comexp.load_results` and the bench all call it, so no two of them can pool differently. A
+view that pools on purpose (the paper's tables pool frictions and Izz, as the paper does)
+names the pooled columns and says so in its header; every other column still separates.
 
 Per condition: per object n / mean / std / max / min of ``error_cm`` over the episodes that
 finished (``status = ok``), an all-objects row, and the failed episodes that were left out,
@@ -50,6 +50,7 @@ CONDITION_COLUMNS: tuple[str, ...] = (
     "push_length_cm",
     "recenter_beyond_cm",
     "estimator",
+    "physics",
 )
 FRICTION_COLUMNS = ("mu_floor_x", "mu_floor_y", "mu_pusher")
 # The paper's Tables II/III and Figs. 3/4 pool the friction grid and both Izz scales.
