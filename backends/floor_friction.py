@@ -27,6 +27,7 @@ import shapely
 from numba import njit
 
 from comexp.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
+from comexp.simulator import pusher_contact_height_m
 
 ZERO3 = np.zeros(3)
 EMPTY = np.zeros(0)
@@ -314,8 +315,7 @@ class FootprintFriction:
         self.com = np.asarray(obj.com_m, dtype=float)
         outline = np.asarray(obj.outline_m, dtype=float)
         self.h_com = obj.height_m / 2.0
-        top = min(obj.height_m, pusher.clearance_m + pusher.length_m)
-        self.z_push = 0.5 * (pusher.clearance_m + top)  # resultant of a line contact on the side
+        self.z_push = pusher_contact_height_m(pusher, obj.height_m)
         pts, area = footprint_samples(outline, self.set.samples)
         self.d_obj = pts - self.com  # sample offsets from the CoM, object frame
         self.pressure = WinklerPressure(self.d_obj, area, self.m * GRAVITY_M_S2)

@@ -44,7 +44,12 @@ from comexp.scene import (
     SceneSpec,
     SimSettings,
 )
-from comexp.simulator import FLOOR_FRICTION_CHOICES, PARK_XY_M, Simulator
+from comexp.simulator import (
+    FLOOR_FRICTION_CHOICES,
+    PARK_XY_M,
+    Simulator,
+    pusher_contact_height_m,
+)
 
 # Pusher mass (kg): 500x the object's, so contact impulses change its velocity by < 0.2 %
 # of the object's change within a step; its velocity is re-imposed before every step.
@@ -101,15 +106,20 @@ def _floor_urdf(size_m: float, thickness_m: float) -> str:
     )
 
 
-def _pusher_urdf(radius_m: float, length_m: float, mass_kg: float) -> str:
-    """A free cylinder; its large inertia keeps contact torques from turning it in one step."""
+def _pusher_urdf(radius_m: float, mass_kg: float) -> str:
+    """The pusher as a free sphere of the pusher's radius, centred at the height of the line
+    contact's resultant (see `pusher_contact_height_m`): Bullet reduces the line contact of a
+    vertical cylinder or capsule with a vertical face to 1-3 points at arbitrary heights (near
+    the face's top at impact, measured 13.8 of 15 mm), whose moment tilts a low object by ~1 deg;
+    a sphere touches at one point, where the resultant is. Its large inertia keeps contact
+    torques from turning it in one step."""
     i = _fmt(mass_kg * 1.0)
-    cyl = f'<geometry><cylinder radius="{_fmt(radius_m)}" length="{_fmt(length_m)}"/></geometry>'
+    geom = f'<geometry><sphere radius="{_fmt(radius_m)}"/></geometry>'
     return (
         '<?xml version="1.0"?><robot name="pusher"><link name="tip">'
         f'<inertial><mass value="{_fmt(mass_kg)}"/>'
         f'<inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/>'
-        f"</inertial><collision>{cyl}</collision></link></robot>"
+        f"</inertial><collision>{geom}</collision></link></robot>"
     )
 
 
@@ -240,9 +250,9 @@ class PybulletSimulator(Simulator):
         )
 
         pu = scene.pusher
-        self._pusher_z = pu.clearance_m + pu.length_m / 2.0
+        self._pusher_z = pusher_contact_height_m(pu, scene.obj.height_m)
         pusher_path = self._hashed_file(
-            "pusher", "urdf", _pusher_urdf(pu.radius_m, pu.length_m, _PUSHER_MASS_KG)
+            "pusher", "urdf", _pusher_urdf(pu.radius_m, _PUSHER_MASS_KG)
         )
         self._pusher = pb.loadURDF(
             pusher_path,

@@ -23,6 +23,7 @@ from comexp.scene import (
     ObjectState,
     Pose2D,
     PushCommand,
+    PusherSpec,
     SceneSpec,
     SimSettings,
 )
@@ -318,6 +319,13 @@ def point_polygon_distance(pt: np.ndarray, poly: np.ndarray) -> float:
         x_at = a[:, 0] + (pt[1] - a[:, 1]) * ab[:, 0] / ab[:, 1]
     inside = int(np.sum(crosses & (pt[0] < x_at))) % 2 == 1
     return -d if inside else d
+
+
+def pusher_contact_height_m(pusher: PusherSpec, object_height_m: float) -> float:
+    """Height of the resultant of the pusher's line contact with an object's vertical side:
+    the middle of their overlap (the pusher spans clearance .. clearance + length)."""
+    top = min(object_height_m, pusher.clearance_m + pusher.length_m)
+    return 0.5 * (pusher.clearance_m + top)
 
 
 def pusher_clearance_m(
