@@ -42,7 +42,8 @@ system-deps:
 $(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(NO_EDITABLE_NOTICE) $(PY) -m pip install -q -c requirements.lock -e '.[$(EXTRAS)]'
+	@echo "$(PY) -m pip install -q -c requirements.lock -e '.[$(EXTRAS)]'"
+	@$(NO_EDITABLE_NOTICE) $(PY) -m pip install -q -c requirements.lock -e '.[$(EXTRAS)]'
 	@touch $(STAMP)
 
 install: system-deps $(STAMP)

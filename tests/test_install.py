@@ -5,7 +5,9 @@ own config tree (`pkg://comexp.conf`) from any directory.
 
 from __future__ import annotations
 
+import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -110,6 +112,52 @@ def _source_copy(dest: Path) -> None:
         shutil.copytree(ROOT / folder, dest / folder, ignore=shutil.ignore_patterns("__pycache__"))
 
 
+def _warning_lines(output: str) -> list[str]:
+    """setuptools' warnings reach pip's output (license format, data folders taken for
+    packages, ...); pip's own notices about this machine's index locations are not ours."""
+    return [
+        ln
+        for ln in output.splitlines()
+        if re.search(r"warn", ln, re.IGNORECASE) and not ln.startswith("WARNING: Location ")
+    ]
+
+
+def test_editable_install_as_the_makefile_runs_it_prints_no_warnings(tmp_path: Path) -> None:
+    """`make install`'s editable build, with the Makefile's PYTHONWARNINGS filter for
+    setuptools' "Editable installation" notice; the installed finder maps the package-dir
+    layout (comexp.backends -> backends/, ...)."""
+    m = re.search(r"^NO_EDITABLE_NOTICE\s*:=(.*)$", (ROOT / "Makefile").read_text(), re.M)
+    assert m, "no NO_EDITABLE_NOTICE in the Makefile"
+    env = dict(os.environ)
+    for word in shlex.split(m.group(1)):
+        key, _, value = word.partition("=")
+        env[key] = value
+    src = tmp_path / "src"
+    src.mkdir()
+    _source_copy(src)
+    site = tmp_path / "site"
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "-e", str(src)]
+        + ["--target", str(site)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
+    assert r.returncode == 0, r.stderr
+    assert not _warning_lines(r.stdout + r.stderr), r.stdout + r.stderr
+    # -S: without the venv's own site-packages, whose editable finder maps this checkout
+    probe = (
+        "import site, sys; site.addsitedir(sys.argv[1]); "
+        "import comexp.backends, comexp.conf; print(comexp.backends.__file__)"
+    )
+    r = subprocess.run(
+        [sys.executable, "-S", "-c", probe, str(site)], capture_output=True, text=True, cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(src / "backends" / "__init__.py")
+
+
 def test_wheel_builds_without_warnings_and_finds_its_configs_installed(tmp_path: Path) -> None:
     src = tmp_path / "src"
     src.mkdir()
@@ -122,13 +170,7 @@ def test_wheel_builds_without_warnings_and_finds_its_configs_installed(tmp_path:
         timeout=600,
     )
     assert r.returncode == 0, r.stderr
-    # setuptools' warnings reach pip's output (license format, data folders taken for
-    # packages, ...); pip's own notices about this machine's index locations are not ours
-    warnings = [
-        ln
-        for ln in (r.stdout + r.stderr).splitlines()
-        if re.search(r"warn", ln, re.IGNORECASE) and not ln.startswith("WARNING: Location ")
-    ]
+    warnings = _warning_lines(r.stdout + r.stderr)
     assert not warnings, "\n".join(warnings)
     (wheel,) = wheels.glob("comexp-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
