@@ -23,7 +23,6 @@ from typing import Any
 import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
-from omegaconf.errors import OmegaConfBaseException
 
 from comexp.episode import EstimatorSettings
 
@@ -419,10 +418,7 @@ def load_object_mapping(repo: Any, name: str) -> dict[str, Any]:
     node = res.config
     if OmegaConf.is_config(node) and "defaults" in node:
         node = OmegaConf.masked_copy(node, [k for k in node if k != "defaults"])
-    try:
-        data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
-    except OmegaConfBaseException as e:  # e.g. an interpolation that does not resolve
-        raise ConfigError(f"object {name!r}: {str(e).splitlines()[0]}") from None
+    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
     if not isinstance(data, dict):
         raise ConfigError(f"object {name!r}: config must be a mapping")
     return data
