@@ -9,6 +9,7 @@ import os
 import re
 import shlex
 import shutil
+import site
 import subprocess
 import sys
 import zipfile
@@ -78,7 +79,9 @@ def test_venv_holds_exactly_the_locked_packages() -> None:
     excluded = _lock_exclude()
     locked = _locked()
     installed: dict[str, set[str]] = {}
-    for dist in metadata.distributions():
+    # The venv's site-packages only: sys.path can hold more once a test imported ray, which
+    # puts its vendored psutil and colorama (ray/thirdparty_files) on it.
+    for dist in metadata.distributions(path=site.getsitepackages()):
         name = dist.metadata["Name"]
         if name and _canonical(name) not in excluded:
             installed.setdefault(_canonical(name), set()).add(dist.version)
