@@ -3,6 +3,7 @@
     comexp                                   # floor=iso speed=40: 1,600 episodes
     comexp -m floor=iso,aniso speed=40,4     # the whole study, 4 jobs
     comexp --cfg job                         # print the resolved config
+    comexp -m floor=iso,aniso --cfg job      # print every job's config
     comexp --help
 
 Bad input is rejected before anything is written: `ValidateCallback` checks every job of a run
@@ -29,7 +30,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from comexp.config import ConfigError, PreparedJob, prepare_job
+from comexp.config import ConfigError, PreparedJob, prepare_job, yaml_error_line
 from comexp.grid import expand_grid
 
 log = logging.getLogger("comexp")
@@ -276,13 +277,88 @@ def _app(cfg: DictConfig) -> dict[str, Any]:
         raise Abort(str(e), EXIT_FAILED) from None
 
 
+# --- `--cfg` with `-m`: every job's config ---------------------------------------------------
+
+
+def _show_sweep_cfg(
+    self: Any,
+    config_name: str | None,
+    overrides: list[str],
+    cfg_type: str,
+    package: str | None,
+    resolve: bool = False,
+) -> None:
+    """Stands in for `Hydra.show_cfg` when `-m` comes with `--cfg`: Hydra refuses the pair, but
+    "what will this sweep run?" is a fair question. Prints one YAML document per job, in launch
+    order, each headed by its overrides; like `--cfg` alone, it checks types, not values."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from omegaconf import open_dict
+
+    cfg = self.compose_config(
+        config_name=config_name,
+        overrides=overrides,
+        run_mode=RunMode.MULTIRUN,
+        with_log_configuration=False,
+    )
+    jobs = _sweep_job_overrides(cfg)
+    if jobs is None:
+        raise Abort("--cfg with -m works with Hydra's basic sweeper only", EXIT_BAD_INPUT)
+    docs = []
+    for num, job in enumerate(jobs):
+        job_cfg = self.config_loader.load_sweep_config(cfg, list(job))
+        with open_dict(job_cfg):  # as Hydra's basic launcher and run_job do (nothing created)
+            job_cfg.hydra.job.id = num
+            job_cfg.hydra.job.num = num
+            sweep = job_cfg.hydra.sweep
+            out_dir = Path(str(sweep.dir), str(sweep.subdir)).absolute()
+            job_cfg.hydra.runtime.output_dir = str(out_dir)
+        HydraConfig.instance().set_config(job_cfg)
+        OmegaConf.set_readonly(job_cfg.hydra, None)
+        node: Any = self.get_sanitized_cfg(job_cfg, cfg_type)
+        if package not in (None, "_global_"):
+            node = OmegaConf.select(node, package)
+            if node is None:
+                raise Abort(f"package {package!r} not found in config", EXIT_BAD_INPUT)
+        if OmegaConf.is_config(node):
+            body = OmegaConf.to_yaml(node, resolve=resolve)
+        else:
+            body = f"{node}\n"
+        docs.append(f"# job {num}: {' '.join(job)}\n{body}")
+    sys.stdout.write("---\n".join(docs))
+
+
+@contextlib.contextmanager
+def _cfg_per_sweep_job() -> Any:
+    from hydra._internal.hydra import Hydra
+
+    original = Hydra.show_cfg
+    Hydra.show_cfg = _show_sweep_cfg  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        Hydra.show_cfg = original  # type: ignore[method-assign]
+
+
+def _split_multirun_cfg(argv: list[str]) -> list[str] | None:
+    """`argv` without `-m`/`--multirun` when it also asks for `--cfg`; None otherwise."""
+    multirun = [a for a in argv if a in ("-m", "--multirun")]
+    show_cfg = any(a in ("-c", "--cfg") or a.startswith("--cfg=") for a in argv)
+    if not (multirun and show_cfg):
+        return None
+    return [a for a in argv if a not in multirun]
+
+
 # --- error reporting ----------------------------------------------------------------------------
 
 
 def _hydra_error_line(e: BaseException) -> str:
-    """One line out of Hydra's and OmegaConf's multi-line messages."""
+    """One line out of Hydra's, OmegaConf's and PyYAML's multi-line messages."""
+    import yaml
     from hydra.errors import MissingConfigException
 
+    if isinstance(e, yaml.YAMLError):
+        return yaml_error_line(e)
     if isinstance(e, MissingConfigException) and e.missing_cfg_file and e.options is not None:
         group, _, name = e.missing_cfg_file.rpartition("/")
         if group:
@@ -331,6 +407,7 @@ def _scrub_log_records(argv: list[str]) -> None:
 def main() -> None:
     """Console script. Hydra would print multi-line errors; we ask it to raise (unless the
     user set HYDRA_FULL_ERROR=1 to see everything) and print one line instead."""
+    import yaml
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
@@ -338,8 +415,14 @@ def main() -> None:
     user_full = os.environ.get("HYDRA_FULL_ERROR") == "1"
     os.environ["HYDRA_FULL_ERROR"] = "1"
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    show_per_job = _split_multirun_cfg(sys.argv[1:])
     try:
-        _app()
+        if show_per_job is None:
+            _app()
+        else:
+            sys.argv[1:] = show_per_job
+            with _cfg_per_sweep_job():
+                _app()
     except Abort as e:
         _die(e.message, e.code)
     except KeyboardInterrupt:
@@ -347,10 +430,19 @@ def main() -> None:
             "interrupted; finished episodes are stored, run the same command to resume",
             EXIT_INTERRUPTED,
         )
-    except (HydraException, OmegaConfBaseException) as e:
+    except (HydraException, OmegaConfBaseException, yaml.YAMLError) as e:
+        # YAML: a config file Hydra composes (primary config, floor/, experiment/ ...)
         if user_full:
             raise
         _die(_hydra_error_line(e), EXIT_BAD_INPUT)
+    except ValueError as e:
+        # Hydra's own command-line checks (e.g. `--info` with `-m`) raise plain ValueErrors
+        if user_full or not str(e).startswith(_HYDRA_USAGE_ERRORS):
+            raise
+        _die(str(e).splitlines()[0], EXIT_BAD_INPUT)
+
+
+_HYDRA_USAGE_ERRORS = ("Only one of --run, --multirun", "The --resolve flag can only be used")
 
 
 if __name__ == "__main__":

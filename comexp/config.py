@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
@@ -406,9 +407,28 @@ def available_objects(repo: Any) -> list[str]:
     return list(repo.get_group_options(OBJECT_GROUP))
 
 
+def yaml_error_line(e: yaml.YAMLError) -> str:
+    """`malformed YAML in FILE, line L, column C: problem (context at line, column)`: PyYAML's
+    multi-line message in one line, positions 1-based as editors count them."""
+    if not isinstance(e, yaml.MarkedYAMLError) or e.problem_mark is None:
+        text = [t.strip() for t in str(e).splitlines() if t.strip()]
+        return f"malformed YAML: {' '.join(text[:2]) or type(e).__name__}"
+    mark = e.problem_mark
+    out = f"malformed YAML in {mark.name}, line {mark.line + 1}, column {mark.column + 1}: "
+    out += e.problem or "syntax error"
+    ctx = e.context_mark
+    if e.context and ctx is not None:
+        where = f"line {ctx.line + 1}, column {ctx.column + 1}"
+        out += f" ({e.context} at {where})" if ctx.name == mark.name else f" ({e.context})"
+    return out
+
+
 def load_object_mapping(repo: Any, name: str) -> dict[str, Any]:
     """Raw mapping of `object/<name>` from the first source that has it."""
-    res = repo.load_config(f"{OBJECT_GROUP}/{name}")
+    try:
+        res = repo.load_config(f"{OBJECT_GROUP}/{name}")
+    except yaml.YAMLError as e:  # Hydra's config sources pass PyYAML's errors through
+        raise ConfigError(f"object {name!r}: {yaml_error_line(e)}") from None
     if res is None:
         raise ConfigError(f"unknown object {name!r}")
     node = res.config

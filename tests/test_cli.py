@@ -103,6 +103,100 @@ def test_bad_input_is_one_line_and_writes_nothing(
     assert list(tmp_path.iterdir()) == []  # no database, no Hydra output folder
 
 
+# An unclosed bracket: PyYAML reports it where the next key starts (line 2, column 1).
+MALFORMED = "outline_cm: [[0, 0], [10, 0]\nheight_cm: 2\n"
+GOOD = "outline_cm: [[0, 0], [9, 0], [0, 6]]\nheight_cm: 2\n"
+
+
+def _user_conf(tmp_path: Path) -> Path:
+    conf = tmp_path / "myconf"
+    (conf / "object").mkdir(parents=True)
+    (conf / "object" / "bad.yaml").write_text(MALFORMED)
+    (conf / "object" / "good.yaml").write_text(GOOD)
+    return conf
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["grid.objects=[bad]"],
+        [],  # every object of the group, built-in and the user's
+        ["-m", "grid.objects=[bad]", "speed=40,4"],
+    ],
+)
+def test_malformed_object_file_is_one_line_with_its_position(
+    tmp_path: Path, args: list[str]
+) -> None:
+    conf = _user_conf(tmp_path)
+    r = comexp(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", *FAKE)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("comexp: error: object 'bad': "), r.stderr
+    assert f"malformed YAML in {conf / 'object' / 'bad.yaml'}, line 2, column 1: " in lines[0]
+    assert "(while parsing a flow sequence at line 1, column 13)" in lines[0]
+    assert "Traceback" not in r.stdout + r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["myconf"]  # no results/, no database
+
+
+@pytest.mark.parametrize("args", [["floor=mine"], ["-m", "floor=iso,mine"]])
+def test_malformed_group_file_hydra_composes_is_one_line(tmp_path: Path, args: list[str]) -> None:
+    group = "floor"  # read by Hydra while composing, as experiment/ and the primary config
+    conf = tmp_path / "myconf"
+    (conf / group).mkdir(parents=True)
+    (conf / group / "mine.yaml").write_text("name: iso\nmu: [0.1, 1.0\n")
+    r = comexp(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db")
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    where = f"malformed YAML in {conf / group / 'mine.yaml'}, line 3, column 1: "
+    assert lines[0].startswith(f"comexp: error: {where}"), lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["myconf"]
+
+
+# --- `--cfg` with `-m` ----------------------------------------------------------------------------
+
+
+def test_cfg_with_multirun_prints_every_jobs_config(tmp_path: Path) -> None:
+    r = comexp(tmp_path, "-m", "floor=iso,aniso", "speed=40,4", "--cfg", "job")
+    assert r.returncode == 0, r.stderr
+    docs = list(yaml.safe_load_all(r.stdout))
+    assert [(d["floor"]["name"], d["speed"]) for d in docs] == [
+        ("iso", 40.0),
+        ("iso", 4.0),
+        ("aniso", 40.0),
+        ("aniso", 4.0),
+    ]
+    assert all("hydra" not in d for d in docs)
+    assert r.stdout.startswith("# job 0: floor=iso speed=40\n")
+    # one package of each job's config, and Hydra's node with each job's own output folder
+    r = comexp(tmp_path, "--multirun", "floor=iso,aniso", "--cfg", "job", "-p", "floor.name")
+    assert r.returncode == 0, r.stderr
+    assert list(yaml.safe_load_all(r.stdout)) == ["iso", "aniso"]
+    r = comexp(tmp_path, "-m", "speed=40,4", "--cfg", "all", "--resolve")
+    assert r.returncode == 0, r.stderr
+    outs = [d["hydra"]["runtime"]["output_dir"] for d in yaml.safe_load_all(r.stdout)]
+    assert [Path(o).name for o in outs] == ["0_pybullet_iso_speed40.0", "1_pybullet_iso_speed4.0"]
+    assert list(tmp_path.iterdir()) == []  # printing creates no output folder
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["-m", "speed=40,abc", "--cfg", "job"], "speed"),
+        (["-m", "speed=40,4", "--cfg", "job", "-p", "nope"], "nope"),
+        (["-m", "speed=40,4", "--info"], "Only one of"),
+    ],
+)
+def test_cfg_with_multirun_bad_input_is_one_line(
+    tmp_path: Path, args: list[str], needle: str
+) -> None:
+    r = comexp(tmp_path, *args)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("comexp: error: ") and needle in lines[0]
+    assert r.stdout == "" and list(tmp_path.iterdir()) == []
+
+
 # --- runs with a fake runner ---------------------------------------------------------------------
 
 
@@ -110,6 +204,9 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
     conf = tmp_path / "myconf" / "object"
     conf.mkdir(parents=True)
     (conf / "my_tri.yaml").write_text("outline_cm: [[0, 0], [9, 0], [0, 6]]\nheight_cm: 2\n")
+    # A broken file beside it is not read when not selected (Hydra lists a group's files
+    # without parsing them): it must not block a run that does not use it.
+    (conf / "broken.yaml").write_text(MALFORMED)
     args = [
         "--config-dir",
         str(tmp_path / "myconf"),

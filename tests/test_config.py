@@ -141,6 +141,27 @@ def test_broken_user_objects_are_one_line_errors(tmp_path: Path) -> None:
         assert "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize(
+    ("text", "where", "problem"),
+    [
+        ("outline_cm: [[0, 0], [9, 0]\nheight_cm: 2\n", "line 2, column 1", "expected ','"),
+        (TRIANGLE + "height_cm: 3\n", "line 4, column 1", "found duplicate key height_cm"),
+        ("outline_cm: [[0, 0],\t[9, 0], [0, 6]]\n", "line 1, column 21", "found character '\\t'"),
+    ],
+)
+def test_malformed_object_yaml_names_file_and_position(
+    tmp_path: Path, text: str, where: str, problem: str
+) -> None:
+    (tmp_path / "object").mkdir()
+    (tmp_path / "object" / "bad.yaml").write_text(text)
+    sp = f"hydra.searchpath=[file://{tmp_path}]"
+    with pytest.raises(ConfigError) as info:
+        prepare_job(_compose(sp, "grid.objects=[bad]"))
+    msg = str(info.value)
+    assert msg.startswith(f"object 'bad': malformed YAML in {tmp_path}/object/bad.yaml, {where}: ")
+    assert problem in msg and "\n" not in msg
+
+
 def test_sqlite_path_forms() -> None:
     assert sqlite_path("results/a.db") == Path("results/a.db")
     assert sqlite_path("sqlite:///results/a.db") == Path("results/a.db")
