@@ -377,10 +377,11 @@ RAY_CONNECT_TIMEOUT_S = 5.0
 
 def parse_ray_address(address: str) -> tuple[str, int]:
     """HOST:PORT (a cluster's GCS address, `[v6addr]:PORT` too) as (host, port), or
-    `ConfigError`. Ray Client addresses (`ray://`) need `ray[client]`, which is not installed."""
+    `ConfigError`. Ray Client addresses (`ray://`) would need `ray[client]` (grpcio), which is
+    not a dependency: comexp joins clusters as a node instead (workers/pool.py `JoinNode`)."""
     if "://" in address:
         raise ConfigError(
-            f"ray.address: {address!r}: Ray Client addresses need ray[client] (not installed); "
+            f"ray.address: {address!r}: Ray Client (ray://) is not supported; "
             "give the cluster's HOST:PORT (the head's --port, 6379 by default)"
         )
     host, sep, port = address.rpartition(":")
