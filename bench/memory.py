@@ -90,6 +90,8 @@ def proc_name(pid: int) -> str:
     base = os.path.basename(first)
     if base.startswith("python"):
         script = next((p for p in parts[1:] if p.endswith(".py")), None)
+        if script is None and "-m" in parts[1:-1]:  # python -m ray.scripts.scripts start ...
+            return " ".join(parts[parts.index("-m") + 1 :][:2])
         return os.path.basename(script) if script else base
     return base
 

@@ -214,6 +214,9 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         )
         summary: dict[str, Any] = {"episodes": len(specs), "skipped": len(specs) - len(todo)}
         if todo:
+            # Ray first: a cluster that cannot be joined leaves no sweep row behind
+            # (`prepare_job` has already rejected an address where nothing listens).
+            ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
             hc = HydraConfig.get()
             job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
             sweep_id = db.start_sweep(
@@ -223,7 +226,6 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
                 versions=_versions(),
                 git_rev=_git_rev(),
             )
-            ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
             pool = EpisodePool(
                 exp.backend.name,
                 exp.workers,

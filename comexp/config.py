@@ -13,6 +13,7 @@ import copy
 import dataclasses
 import math
 import re
+import socket
 import tempfile
 import typing
 from collections.abc import Mapping, Sequence
@@ -388,6 +389,49 @@ def check_db_location(db: str) -> None:
         ) from None
 
 
+RAY_CONNECT_TIMEOUT_S = 5.0
+
+
+def parse_ray_address(address: str) -> tuple[str, int]:
+    """HOST:PORT (a cluster's GCS address, `[v6addr]:PORT` too) as (host, port), or
+    `ConfigError`. Ray Client addresses (`ray://`) would need `ray[client]` (grpcio), which is
+    not a dependency: comexp joins clusters as a node instead (workers/pool.py `JoinNode`)."""
+    if "://" in address:
+        raise ConfigError(
+            f"ray.address: {address!r}: Ray Client (ray://) is not supported; "
+            "give the cluster's HOST:PORT (the head's --port, 6379 by default)"
+        )
+    host, sep, port = address.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"ray.address: expected null, auto or HOST:PORT, got {address!r}")
+    return host, int(port)
+
+
+def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """Fail within `timeout_s`, before anything is written, when no server listens at a
+    HOST:PORT `ray.address`. Left to itself Ray retries an unreachable address for minutes,
+    printing GCS warnings. (`auto` names the local node, which Ray finds or fails on at once.)
+    """
+    if address is None or address == "auto":
+        return
+    host, port = parse_ray_address(address)
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except socket.gaierror as e:
+        raise ConfigError(f"ray.address: cannot resolve host {host!r} ({e.strerror})") from None
+    except TimeoutError:
+        raise ConfigError(
+            f"ray.address: no answer from {address} within {timeout_s:g} s (is the Ray head up?)"
+        ) from None
+    except OSError as e:
+        reason = e.strerror or type(e).__name__
+        raise ConfigError(
+            f"ray.address: cannot reach {address}: {reason} (is the Ray head up?)"
+        ) from None
+
+
 # --- objects from every config source -------------------------------------------------------
 
 
@@ -482,7 +526,8 @@ class PreparedJob:
 
 
 def prepare_job(cfg: DictConfig) -> PreparedJob:
-    """Typed config + validation + objects + database location; raises `ConfigError`.
+    """Typed config + validation + objects + database location + a reachable Ray address;
+    raises `ConfigError`.
 
     Objects are looked up in the job's config sources: `cfg.hydra` in a callback's view of the
     config, `HydraConfig` inside the task function.
@@ -497,4 +542,5 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
     repo = config_repository(OmegaConf.to_container(sources, resolve=False))
     objects = load_objects(repo, exp.grid.objects)
     check_db_location(exp.db)
+    check_ray_address(exp.ray.address)
     return PreparedJob(cfg=exp, estimator=est, objects=objects)

@@ -6,10 +6,13 @@ store, resume and survive Ctrl-C, and the two example commands of the brief.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -89,6 +92,10 @@ def test_help_and_cfg_work_from_any_directory(tmp_path: Path) -> None:
         (["floor=wood"], "floor"),
         (["-m", "speed=40,-4"], "speed"),
         (["-m", "backend=pybullet,bullet3"], "backend"),
+        (["ray.address=127.0.0.9:9"], "ray.address: cannot reach 127.0.0.9:9"),
+        (["-m", "speed=40,4", "ray.address=127.0.0.9:9"], "127.0.0.9:9"),
+        (["ray.address=ray://127.0.0.9:10001"], "ray.address"),
+        (["ray.address=head-without-port"], "ray.address"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(
@@ -195,6 +202,58 @@ def test_cfg_with_multirun_bad_input_is_one_line(
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("comexp: error: ") and needle in lines[0]
     assert r.stdout == "" and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("address", ["127.0.0.9:9", "192.0.2.1:6379"])
+def test_an_unreachable_ray_address_fails_fast(tmp_path: Path, address: str) -> None:
+    """Refused (nothing listens) or unanswered (TEST-NET, packets dropped): one line naming
+    the address well within 30 s, where Ray alone retries for minutes; nothing written."""
+    t0 = time.monotonic()
+    r = comexp(tmp_path, f"ray.address={address}", *SMALL, *FAKE, "db=results/x.db", timeout=60)
+    wall_s = time.monotonic() - t0
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("comexp: error: ray.address: ") and address in lines[0]
+    assert wall_s < 30, f"took {wall_s:.1f} s"
+    assert list(tmp_path.iterdir()) == []  # no database, no Hydra output folder
+
+
+def test_a_port_that_is_no_ray_head_fails_in_one_line(tmp_path: Path) -> None:
+    """Something listens but is no Ray GCS (a wrong port): `ray start` would retry forever;
+    comexp gives up at its first failed GCS connection, exits 1 in one line naming the
+    address, and writes no sweep, and its join node leaves no process or temp dir behind."""
+    server = socket.socket()
+    server.bind(("127.0.0.5", 0))
+    server.listen(8)  # accepts (the kernel completes the handshake), never answers
+    address = f"127.0.0.5:{server.getsockname()[1]}"
+    tmp = tempfile.mkdtemp(prefix="cxj-", dir="/tmp")  # short: Ray's socket paths
+    try:
+        t0 = time.monotonic()
+        r = comexp(tmp_path, f"ray.address={address}", *SMALL, *FAKE, "db=x.db", TMPDIR=tmp)
+        wall_s = time.monotonic() - t0
+        leftover = os.listdir(tmp)
+    finally:
+        server.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("comexp: error: cannot join the Ray cluster at " + address)
+    assert wall_s < 30, f"took {wall_s:.1f} s"
+    assert rows(tmp_path / "x.db", "select count(*) from sweeps") == [(0,)]
+    assert leftover == []
+    assert not _pids_naming(tmp)
+
+
+def _pids_naming(needle: str) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if needle.encode() in (d / "cmdline").read_bytes():
+                    out.append(int(d.name))
+            except OSError:
+                continue
+    return out
 
 
 # --- runs with a fake runner ---------------------------------------------------------------------

@@ -137,6 +137,8 @@ class LoopbackCluster:
             RAY_AUTH_MODE="token",
             RAY_AUTH_TOKEN=secrets.token_hex(32),  # in the environment only, never in ~/.ray
             FAKE_RUN_SLEEP_S="0.25",
+            # drivers put their zero-CPU join node's temp dir here: `leftovers` sees it
+            TMPDIR=self.root,
         )
         self.nodes: dict[str, subprocess.Popen] = {}
         self.drivers: list[subprocess.Popen] = []
@@ -197,9 +199,9 @@ class LoopbackCluster:
         return pids[0]
 
     # drivers ----------------------------------------------------------------------------------
-    def comexp(self, cwd: Path, *args: str) -> Driver:
+    def comexp(self, cwd: Path, *args: str, prefix: tuple[str, ...] = ()) -> Driver:
         p = subprocess.Popen(
-            [str(BIN / "comexp"), f"ray.address={self.address}", *args],
+            [*prefix, str(BIN / "comexp"), f"ray.address={self.address}", *args],
             cwd=cwd,
             env=self.env,
             stdout=subprocess.PIPE,
@@ -341,6 +343,68 @@ def _per_node(out: str) -> dict[str, int]:
 def _both_nodes_stored(db: Path, at_least: int) -> bool:
     rows = _stored(db)
     return len(rows) >= at_least and len({d.split()[-1] for _, d in rows}) == 2
+
+
+# --- a driver on a machine that runs no Ray node ------------------------------------------------
+
+_JOINED = re.compile(r"joined the Ray cluster at \S+ as a zero-CPU node \(temp dir (\S+)\)")
+# Processes of a head only, and the log monitor (no worker runs on the join node)
+_NOT_ON_THE_JOIN_NODE = ("gcs_server", "dashboard.py", "monitor.py", "log_monitor.py")
+
+
+def _unshare_permitted() -> bool:
+    try:
+        r = subprocess.run(
+            ["unshare", "-pf", "--mount-proc", "true"], capture_output=True, timeout=30
+        )
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return r.returncode == 0
+
+
+def test_a_driver_on_a_machine_without_ray_joins_as_a_zero_cpu_node(tmp_path: Path) -> None:
+    """The compose `sweep` container, or a laptop: comexp in a PID namespace that sees no
+    Ray process (`unshare -pf --mount-proc`), head on 127.0.0.2. Ray 2.60 alone fails after
+    ~60 s with "No node info found"; comexp joins as a zero-CPU node of its own (raylet and
+    Ray's two agents; no log monitor, no head process), runs every episode on the head's
+    CPU, stores them, and stops that node."""
+    if not _unshare_permitted():
+        pytest.skip("unshare -pf --mount-proc is not permitted here (needs CAP_SYS_ADMIN)")
+    c = LoopbackCluster()
+    seen: dict[int, str] = {}
+    try:
+        c.start(n_nodes=1)
+        db = tmp_path / "j.db"
+        d = c.comexp(
+            tmp_path,
+            "workers=1",
+            f"db={db}",
+            "grid.objects=[rect_8x5,l_shape,square_7]",
+            *SWEEP,  # 6 episodes of 0.25 s on the head's one CPU
+            prefix=("unshare", "-pf", "--mount-proc"),
+        )
+        deadline = time.monotonic() + 120
+        while not (m := _JOINED.search(d.out)):
+            assert d.proc.poll() is None, d.out
+            assert time.monotonic() < deadline, d.out
+            time.sleep(0.2)
+        join_dir = m[1]
+        sessions = {_session_of(p) for p in _pids_with(join_dir)} - {None}
+        seen = {p: _cmdline(p) for p in _in_sessions(sessions) + list(sessions)}
+        assert d.wait(timeout=180) == 0, d.out
+    finally:
+        c.stop()
+    assert not c.leftovers()
+    assert "Traceback" not in d.out, d.out
+    assert not os.path.exists(join_dir)  # removed at exit
+    assert len(sessions) == 1, seen  # `ray start --block` and what it started
+    names = " ".join(seen.values())
+    assert "/raylet " in names and "ray::DashboardAgent" in names, seen
+    for name in _NOT_ON_THE_JOIN_NODE:
+        assert f"/{name} " not in names, (name, seen)
+    assert {node for _, node in d.workers()} == {HEAD_IP}, d.out
+    _assert_complete(db, 6)
+    assert _rows(db, "select count(*) from sweeps") == [(1,)]
 
 
 # --- a sweep across two nodes --------------------------------------------------------------------

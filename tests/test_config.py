@@ -6,12 +6,14 @@ The command-line side (one error line, exit code, nothing written) is in test_cl
 from __future__ import annotations
 
 import dataclasses
+import socket
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
+from comexp import config as config_module
 from comexp.config import (
     ConfigError,
     check_db_location,
@@ -191,3 +193,43 @@ def test_shipped_experiment_reproduces_the_papers_aniso_setting() -> None:
         ["xy", "yx"],
     )
     assert exp.pusher.mu == [0.5] and exp.speed == 4.0
+
+
+# --- ray.address --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("address", "expected"),
+    [("ray-head:6379", ("ray-head", 6379)), ("[::1]:6379", ("::1", 6379))],
+)
+def test_ray_address_parses(address: str, expected: tuple[str, int]) -> None:
+    assert config_module.parse_ray_address(address) == expected
+
+
+@pytest.mark.parametrize(
+    "address", ["ray-head", "ray-head:", ":6379", "ray-head:0", "ray-head:99999", "ray://h:1"]
+)
+def test_bad_ray_addresses_are_config_errors(address: str) -> None:
+    with pytest.raises(ConfigError, match=r"^ray\.address: "):
+        config_module.check_ray_address(address)
+
+
+def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None:
+    """A head whose packets are dropped: the probe's own timeout, one line naming the
+    address (`create_connection` raises TimeoutError after `timeout`)."""
+    seen = {}
+
+    def dropped(addr, timeout):
+        seen.update(addr=addr, timeout=timeout)
+        raise TimeoutError("timed out")
+
+    monkeypatch.setattr(socket, "create_connection", dropped)
+    with pytest.raises(ConfigError, match=r"no answer from 10\.1\.2\.3:6379 within 5 s"):
+        config_module.check_ray_address("10.1.2.3:6379")
+    assert seen == {"addr": ("10.1.2.3", 6379), "timeout": config_module.RAY_CONNECT_TIMEOUT_S}
+
+
+def test_null_and_auto_need_no_probe(monkeypatch) -> None:
+    monkeypatch.setattr(socket, "create_connection", lambda *a, **k: pytest.fail("probed"))
+    config_module.check_ray_address(None)
+    config_module.check_ray_address("auto")

@@ -102,6 +102,12 @@ def test_compose_has_a_head_two_workers_and_a_sweep_on_a_volume() -> None:
     sweep = services["sweep"]
     text = " ".join(_words(sweep["entrypoint"]) + _words(sweep["command"]))
     assert "comexp ray.address=ray-head:6379" in text
+    # comexp joins as a zero-CPU node of its own (workers/pool.py JoinNode): the container
+    # starts no Ray node itself, but needs the shared memory of that node's object store
+    assert "ray start" not in text
+    assert sweep.get("shm_size"), "the sweep's join node keeps its object store in /dev/shm"
+    for name, svc in services.items():
+        assert svc.get("init") is True, f"{name}: PID 1 must reap Ray's orphaned daemons"
     assert f"workers={cpus}" in text and f"/{cpus:.1f} CPU" in text  # waits for all CPUs
     db = re.search(r"\bdb=(\S+)", text)
     assert db, text
