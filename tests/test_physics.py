@@ -20,6 +20,15 @@ BACKENDS = ["pybullet", "mujoco"]
 PUSH_LENGTH_M = 0.03
 
 
+def nearby_starts(pose: Pose2D, n: int = 3) -> list[Pose2D]:
+    """`pose` and starts 0.1-0.3 um and 1-3 urad away: a property that holds at one exact
+    start only is luck of the floating point path, which differs between CPUs."""
+    steps = [0.0, 1.0, -1.0, 3.0, -3.0][:n]
+    return [
+        Pose2D(pose.x_m + k * 1e-7, pose.y_m - k * 1e-7, pose.yaw_rad + k * 1e-6) for k in steps
+    ]
+
+
 @pytest.fixture(params=BACKENDS, scope="module")
 def sim(request):
     s = make_simulator(request.param)
@@ -136,18 +145,30 @@ def _push_left_face(sim, scene: SceneSpec, y_contact: float, speed: float):
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
 def test_push_through_com_does_not_rotate(sim, speed, mu_floor):
+    """At the exact start and 0.1 um either side. Measured |rotation|: pybullet <= 0.093
+    deg (12 starts up to 50 um away), MuJoCo <= 0.13 deg, except MuJoCo on mu 1 at 40 cm/s:
+    0.008 deg at the exact start, 1.92 deg at +0.1 um (tilt 1.6 deg; bimodal, the known impact
+    lift of docs/physics.md), which the exact start alone hid."""
     com = (0.015, 0.01)
-    scene = SceneSpec(FloorSpec(mu_floor, mu_floor), _box(com=com, mu_pusher=1.0))
-    sim.build(scene)
-    out = _push_left_face(sim, scene, com[1], speed)
-    assert out.status is PushStatus.OK, out
-    assert out.contact_made
-    moved = math.hypot(
-        out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m
-    )
-    assert moved > 0.02, "the push must move the object"
-    assert abs(out.rotation_deg) < 0.5, f"{sim.name}: rotated {out.rotation_deg:.3f} deg"
-    assert out.max_tilt_deg < 5.0
+    rotations = []
+    for start in nearby_starts(Pose2D(0.0, 0.0, 0.0)):
+        scene = SceneSpec(
+            FloorSpec(mu_floor, mu_floor), _box(com=com, mu_pusher=1.0), initial_pose=start
+        )
+        sim.build(scene)
+        out = _push_left_face(sim, scene, com[1], speed)
+        assert out.status is PushStatus.OK, out
+        assert out.contact_made
+        moved = math.hypot(
+            out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m
+        )
+        assert moved > 0.02, "the push must move the object"
+        assert out.max_tilt_deg < 5.0
+        rotations.append(out.rotation_deg)
+    worst = max(abs(r) for r in rotations)
+    if sim.name == "mujoco" and (mu_floor, speed) == (1.0, 0.4) and worst >= 0.5:
+        pytest.xfail(f"mujoco impact lift on mu 1 (known, documented): {np.round(rotations, 3)}")
+    assert worst < 0.5, f"{sim.name}: rotated {np.round(rotations, 3)} deg"
 
 
 def _normal_push_through_com(outline_m: np.ndarray, com_m: np.ndarray):
@@ -253,23 +274,32 @@ def test_iso_floor_push_rotation_does_not_depend_on_yaw(sim):
     Box 8x5x3 cm, CoM (1.5, 0.8) cm, push along the object's +y at 1 cm right of the CoM line,
     40 cm/s, floor mu 1, pusher mu 0.5. Before the fix pybullet's rotation depended on the yaw
     by up to 15 deg (friction directions fixed to the floor's axes).
+
+    Per yaw, the median over 5 starts 0.1-0.3 um apart: this 40 cm/s impact on mu 1 is
+    sensitive to the start itself (pybullet: up to 4.1 deg between starts 0.1 um apart at
+    45 and -160 deg, MuJoCo 0.39 deg), which is not a dependence on the yaw. Measured spread of
+    the medians across yaws: pybullet 0.955 deg, MuJoCo 0.393 deg (bound 1.5, margin 0.55);
+    the single exact starts gave 0.955 / 0.393 here but up to 4.1 deg a sub-micron step away.
     """
     com = (0.015, 0.008)
     obj = _box(com=com, mu_pusher=0.5)
-    rotations = []
+    medians = []
     for yaw_deg in (0, 30, 45, 90, -160):
-        pose = Pose2D(0.0, 0.0, math.radians(yaw_deg))
-        scene = SceneSpec(FloorSpec(1.0, 1.0), obj, initial_pose=pose)
-        sim.build(scene)
-        contact = pose.to_world(np.array([com[0] + 0.01, -0.025]))
-        direction = pose.to_world(np.array([0.0, 1.0])) - np.array([pose.x_m, pose.y_m])
-        cmd = contact_push(contact, direction, PUSH_LENGTH_M, 0.4, scene.pusher.radius_m)
-        out = sim.push(cmd)
-        assert out.status is PushStatus.OK and out.contact_made, out
-        rotations.append(out.rotation_deg)
-    r = np.array(rotations)
-    assert np.all(r > 1.0), f"{sim.name}: force right of the CoM along +y turns CCW: {r}"
-    assert r.max() - r.min() < 1.5, f"{sim.name}: rotation per start yaw {np.round(r, 2)}"
+        rotations = []
+        for pose in nearby_starts(Pose2D(0.0, 0.0, math.radians(yaw_deg)), n=5):
+            scene = SceneSpec(FloorSpec(1.0, 1.0), obj, initial_pose=pose)
+            sim.build(scene)
+            contact = pose.to_world(np.array([com[0] + 0.01, -0.025]))
+            direction = pose.to_world(np.array([0.0, 1.0])) - np.array([pose.x_m, pose.y_m])
+            cmd = contact_push(contact, direction, PUSH_LENGTH_M, 0.4, scene.pusher.radius_m)
+            out = sim.push(cmd)
+            assert out.status is PushStatus.OK and out.contact_made, out
+            rotations.append(out.rotation_deg)
+        r = np.array(rotations)
+        assert np.all(r > 1.0), f"{sim.name}: force right of the CoM along +y turns CCW: {r}"
+        medians.append(float(np.median(r)))
+    m = np.array(medians)
+    assert m.max() - m.min() < 1.5, f"{sim.name}: median rotation per start yaw {np.round(m, 2)}"
 
 
 def test_pusher_tracks_commanded_path(sim):
