@@ -264,6 +264,11 @@ def test_offset_push_rotates_with_the_torque(sim, mu_floor):
             f"{sim.name}: speed {speed} offset {offset}: {rot:.2f} deg"
         )
     if mu_floor == 1.0:
+        # Measured margin |fast| - |slow|: MuJoCo >= 3.9 deg over 8 starts up to 10 um away;
+        # pybullet 2.03 deg at the exact start and 0.1 um either side, but its offset pushes
+        # are bimodal a little further out (fast -11.6 or -6.1 deg, slow -8.5 or -4.7 deg):
+        # -2.5 deg at starts 0.3 um and 1 um away. An engine limitation (docs/physics.md),
+        # not loosened here.
         for offset in (+0.015, -0.015):
             assert abs(rotations[(0.4, offset)]) > abs(rotations[(0.04, offset)])
 
