@@ -218,8 +218,8 @@ def test_end_to_end_dynamic_pushing(backend):
         assert r.n_pushes == 5
         # simulated, not wall-clock, time (wall time on a shared machine says nothing): every
         # push came to rest promptly. Measured 1.03-1.31 s per episode (5 pushes) over 8
-        # seeds of each case on both engines; a push that creeps on towards the settle
-        # limit, as the rocking footprints did (docs/physics_pybullet.md), exceeds it.
+        # seeds of each case on both engines; a push that creeps on for seconds towards the
+        # 5 s settle limit, as rocking footprints did (docs/physics_pybullet.md), exceeds it.
         assert r.sim_time_s < 2.0, (r.spec.object, r.sim_time_s)
     # measured over 8 seeds of each case, both engines, CPU features on and off
     # (bench/emulate_cpu.sh): the mean of the 3 <= 0.676 cm, one episode <= 1.062 cm
