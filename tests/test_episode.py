@@ -106,22 +106,46 @@ class KinematicSim(Simulator):
         pass
 
 
+# Seeds 0-7 of every case below. One episode's error is a draw from a spread, and symmetric
+# outlines give exact ties between contacts that floating point breaks either way: with
+# OpenBLAS's AVX2 kernels instead of AVX-512 (OPENBLAS_CORETYPE=Haswell), the box with CoM
+# (-2, -1) at seed 7 takes the mirror-image first push and ends at 1.020 cm instead of
+# 0.864 cm. Measured over seeds 0-23 of all 8 cases, natively and with the CPU features
+# disabled (bench/emulate_cpu.sh avx2 | sse): one episode's error 0.077-1.141 cm, the mean of
+# 8 consecutive seeds <= 0.752 cm (seeds 0-7: <= 0.582 cm); rotation error per episode:
+# median <= 0.771 deg, max <= 1.688 deg.
+IDEAL_SEEDS = range(8)
+IDEAL_MEAN_ERROR_CM = 0.9  # measured <= 0.752 (any 8 consecutive seeds); margin 0.15 cm
+IDEAL_MAX_ERROR_CM = 1.5  # measured <= 1.141 (24 seeds); margin 0.36 cm
+
+
 @pytest.mark.parametrize("source", ["vision", "oracle"])
 @pytest.mark.parametrize(
     "outline,com",
     [(BOX_CM, (1.5, 0.8)), (BOX_CM, (-2.0, -1.0)), (TRI_CM, (0.5, -0.5)), (TRAP_CM, (-1, 0.5))],
 )
 def test_episode_on_ideal_kinematics_finds_the_com(outline, com, source):
-    res = run_episode(spec_for(outline, com, seed=7, rotation_source=source), KinematicSim())
-    assert res.status == "ok", res.detail
-    assert res.n_pushes == 5 and len(res.pushes) == 5
-    assert res.error_cm < 1.0, res
-    # push records are in the object's own frame: the contact lies on the outline and the
-    # push direction points into the object
+    errors = []
+    for seed in IDEAL_SEEDS:
+        res = run_episode(spec_for(outline, com, seed=seed, rotation_source=source), KinematicSim())
+        assert res.status == "ok", (seed, res.detail)
+        assert res.n_pushes == 5 and len(res.pushes) == 5
+        errors.append(res.error_cm)
+        _check_push_records(res, outline, com)
+    assert np.mean(errors) < IDEAL_MEAN_ERROR_CM, np.round(errors, 3)
+    assert max(errors) < IDEAL_MAX_ERROR_CM, np.round(errors, 3)
+
+
+def _check_push_records(res, outline, com) -> None:
+    """Push records are in the object's own frame: the contact lies on the outline, the push
+    direction points into the object and the measured rotation has the moment's sign."""
     poly = shapely.Polygon(outline)
     for p in res.pushes:
         c = np.array([p.contact_x_cm, p.contact_y_cm])
-        assert poly.exterior.distance(shapely.Point(c)) < 0.4
+        # a contour pixel's centre (up to ~0.7 px inside), plus the tracked pose's error, from
+        # the true outline: measured <= 0.435 cm (1.6 px of 0.268 cm; triangle, seed 11) over
+        # seeds 0-23 of these cases; margin 0.115 cm
+        assert poly.exterior.distance(shapely.Point(c)) < 0.55, (res.spec.seed, p)
         inside = c + 0.5 * np.array([p.dir_x, p.dir_y])
         assert poly.contains(shapely.Point(inside))
         # the sign of the measured rotation is the sign of the moment about the true CoM
@@ -130,9 +154,10 @@ def test_episode_on_ideal_kinematics_finds_the_com(outline, com, source):
             assert np.sign(p.rotation_true_deg) == np.sign(moment)
         assert p.decision in ("ccw", "cw", "band")
     # vision: a binary 224 px mask resolves the yaw to ~0.1-1 deg; the worst case, edges
-    # along the pixel grid (this box at ~92 deg), reaches ~1.5 deg (docs/method.md)
+    # along the pixel grid (this box at ~92 deg), reaches ~1.5 deg (docs/method.md); measured
+    # over the seeds above: median <= 0.771 deg, max <= 1.688 deg
     rot_err = [abs(p.rotation_deg - p.rotation_true_deg) for p in res.pushes]
-    assert np.median(rot_err) < 1.0 and max(rot_err) < 2.0, rot_err
+    assert np.median(rot_err) < 1.0 and max(rot_err) < 2.0, (res.spec.seed, rot_err)
     sizes = [p.region_px for p in res.pushes]
     assert sizes == sorted(sizes, reverse=True)
 
@@ -162,7 +187,7 @@ def test_object_is_recentred_before_it_can_leave_the_view():
     far = run_episode(spec_for(seed=5), KinematicSim(slide_m=0.12))
     assert "re-centred" in far.detail
     assert far.status == "ok" and far.n_pushes == 5, far.detail
-    assert far.error_cm < 1.0
+    assert far.error_cm < 1.0  # 0.599 cm; seeds 0-23: <= 0.741 cm, every one re-centred
     lost = run_episode(
         replace(spec_for(seed=5), recenter_beyond_cm=0.0), KinematicSim(slide_m=0.12)
     )
@@ -201,7 +226,13 @@ def test_end_to_end_dynamic_pushing(backend):
     for r in results:
         assert r.status == "ok", (r.failure, r.detail)
         assert r.n_pushes == 5
-        assert r.wall_s < 5.0
+        # simulated, not wall-clock, time (wall time on a shared machine says nothing): every
+        # push came to rest promptly. Measured 1.03-1.31 s per episode (5 pushes) over 8
+        # seeds of each case on both engines; a push that creeps on for seconds towards the
+        # 5 s settle limit, as rocking footprints did (docs/physics_pybullet.md), exceeds it.
+        assert r.sim_time_s < 2.0, (r.spec.object, r.sim_time_s)
+    # measured over 8 seeds of each case, both engines, CPU features on and off
+    # (bench/emulate_cpu.sh): the mean of the 3 <= 0.676 cm, one episode <= 1.062 cm
     errors = [r.error_cm for r in results]
     assert np.mean(errors) < 1.0, errors
     assert max(errors) < 2.0, errors

@@ -25,7 +25,7 @@ mujoco_sim = pytest.importorskip("comexp.backends.mujoco_sim")
 THROUGH_COM_TARGET_DEG = 0.1
 # floor mu 1 at 40 cm/s: the impact lifts the object off its supports for a few ms (soft
 # contacts, docs/physics_mujoco.md "open problems"); measured residual 0.03-0.10 deg there,
-# 0.7-4.6 deg before the fixes
+# 0.7-4.6 deg before the fixes, at the exact starts; 1.92 deg at starts 0.1 um away (xfail)
 THROUGH_COM_IMPACT_DEG = 0.25
 
 
@@ -36,14 +36,13 @@ def sim():
     s.close()
 
 
-def _push_through_com(sim, mu: float, speed: float, com: tuple[float, float], yaw: float):
-    """Push the box's -x face (object frame) along +x at the CoM's y, with the box at `yaw`."""
+def _push_through_com(sim, mu: float, speed: float, com: tuple[float, float], pose: Pose2D):
+    """Push the box's -x face (object frame) along +x at the CoM's y, the box at `pose`."""
     obj = box_object(0.08, 0.05, 0.03, com_m=com, mu_pusher=1.0)
-    scene = SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, yaw))
+    scene = SceneSpec(FloorSpec(mu, mu), obj, initial_pose=pose)
     sim.build(scene)
-    pose = scene.initial_pose
     contact = pose.to_world(np.array([-0.04, com[1]]))
-    normal = (math.cos(yaw), math.sin(yaw))
+    normal = (math.cos(pose.yaw_rad), math.sin(pose.yaw_rad))
     return sim.push(contact_push(contact, normal, 0.03, speed, scene.pusher.radius_m))
 
 
@@ -53,22 +52,29 @@ def _push_through_com(sim, mu: float, speed: float, com: tuple[float, float], ya
     ids=["mirrored", "yaw0.7", "near_face_yaw2"],
 )
 @pytest.mark.parametrize("mu,speed", [(1.0, 0.04), (1.0, 0.4), (0.1, 0.04), (0.1, 0.4)])
-def test_push_through_com_mirrored_and_rotated(request, sim, com, yaw, mu, speed):
-    if (mu, speed) == (1.0, 0.4):
-        # Known (docs/physics.md, MuJoCo): the 40 cm/s impact on mu 1 lifts the object and its
-        # outcome hangs on sub-step detail; under the shared push protocol (one run of steps
-        # per chunk boundary differing by float rounding) the yaw-0.7 case measured 1.92 deg.
-        reason = "mujoco mu 1 impact: rotation sensitive to sub-step detail (1.92 deg measured)"
-        request.node.add_marker(pytest.mark.xfail(reason=reason, strict=False))
-    out = _push_through_com(sim, mu, speed, com, yaw)
-    assert out.status is PushStatus.OK, out
-    moved = math.hypot(
-        out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m
-    )
-    assert moved > 0.02
-    bound = THROUGH_COM_IMPACT_DEG if (mu, speed) == (1.0, 0.4) else THROUGH_COM_TARGET_DEG
-    assert abs(out.rotation_deg) < bound, f"rotated {out.rotation_deg:.3f} deg"
-    assert out.max_tilt_deg < 5.0
+def test_push_through_com_mirrored_and_rotated(sim, com, yaw, mu, speed):
+    """At the exact start and 0.1 um / 1 urad either side (see nearby_starts). Measured over
+    5 starts up to 0.3 um away: |rotation| < 0.0005 deg except on mu 1 at 40 cm/s, where the
+    mirrored and yaw0.7 set-ups turn 0.008 deg at the exact start but 1.92 deg at most nearby
+    ones (bimodal: the known impact lift, docs/physics.md); near_face_yaw2 <= 0.003 deg."""
+    from physics_helpers import nearby_starts
+
+    rotations = []
+    for start in nearby_starts(Pose2D(0.0, 0.0, yaw)):
+        out = _push_through_com(sim, mu, speed, com, start)
+        assert out.status is PushStatus.OK, out
+        moved = math.hypot(
+            out.pose_after.x_m - out.pose_before.x_m, out.pose_after.y_m - out.pose_before.y_m
+        )
+        assert moved > 0.02
+        assert out.max_tilt_deg < 5.0
+        rotations.append(out.rotation_deg)
+    worst = max(abs(r) for r in rotations)
+    impact = (mu, speed) == (1.0, 0.4)
+    bound = THROUGH_COM_IMPACT_DEG if impact else THROUGH_COM_TARGET_DEG
+    if impact and worst >= bound:
+        pytest.xfail(f"impact lift on mu 1 (known, documented): {np.round(rotations, 3)} deg")
+    assert worst < bound, f"rotated {np.round(rotations, 3)} deg"
 
 
 def _slide_distance_m(sim, mu: float, v0: float) -> float:

@@ -69,13 +69,37 @@ def test_contacts_have_inward_normals(name, poly):
     out = p_obj - 0.004 * n_obj
     assert shapely.contains_xy(shape, ins[:, 0], ins[:, 1]).all()
     assert not shapely.contains_xy(shape, out[:, 0], out[:, 1]).any()
-    # and it is the true edge normal to within a few degrees
+    # and it is the true edge normal to within a few degrees (at this pose; at other yaws a
+    # contact next to a corner can be far off: test_contacts_next_to_corners_are_dropped)
     edges = np.roll(poly, -1, axis=0) - poly
     edge_n = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
     edge_n /= np.linalg.norm(edge_n, axis=1, keepdims=True)
     best = np.max(n_obj @ edge_n.T, axis=1)
     err_deg = np.degrees(np.arccos(np.clip(best, -1, 1)))
     assert np.median(err_deg) < 2.5 and err_deg.max() < 8.0, err_deg
+
+
+@pytest.mark.xfail(
+    reason="known defect: contacts 1-1.5 px from a corner can pass the edge/arc tests",
+    strict=False,
+)
+def test_contacts_next_to_corners_are_dropped():
+    """Regression for a defect found by varying the yaw of the test above (not fixed yet).
+
+    At 24 yaws 1.1-1.4 rad the worst contact normal is off by up to 9.07 deg (box), 8.77 deg
+    (triangle) and 43.4 deg (L at 1.373 rad: a contact 3.9 mm from the convex corner; 34.8 deg
+    at 1.399 rad, 2.1 mm from the inner corner), against the < 8 deg of docs/method.md. Also
+    dropping the two neighbours of every rejected contour point measured <= 5.8 deg over
+    those 72 poses (15% fewer candidates); not done here, it changes every study result.
+    """
+    pose = Pose2D(-0.05 + 21e-4, 0.08, 1.1 + 0.013 * 21)
+    perc, _ = perceive_first(render_prism_depth(CAM, L_SHAPE, H, pose))
+    n_obj = Pose2D(0, 0, -pose.yaw_rad).to_world(perc.contact_normals)
+    edges = np.roll(L_SHAPE, -1, axis=0) - L_SHAPE
+    edge_n = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+    edge_n /= np.linalg.norm(edge_n, axis=1, keepdims=True)
+    err_deg = np.degrees(np.arccos(np.clip(np.max(n_obj @ edge_n.T, axis=1), -1, 1)))
+    assert err_deg.max() < 8.0, np.round(np.sort(err_deg)[-3:], 1)
 
 
 def test_concave_contacts_point_inward():
@@ -89,29 +113,42 @@ def test_concave_contacts_point_inward():
     assert (n[:, 0] < -0.95).all(), "the inner vertical edge's inward normal is -x"
 
 
+# Three random walks of 8 images each, errors pooled. Measured over 24 walks (192 fits) per
+# shape, natively and with `bench/emulate_cpu.sh avx2` (one tri walk differs): the median of 3
+# pooled walks <= 0.231 deg, the worst fit 1.37 deg (L; 0.94 box, 1.10 tri), position error
+# <= 1.29 mm (0.48 px of 2.68 mm). One walk alone (the old test: seed 3, median < 0.35, max
+# < 0.8 deg, < 1 mm) failed for 3-4 of the 24 walks of each shape.
+POSE_WALK_SEEDS = (3, 4, 5)
+POSE_MEDIAN_DEG = 0.35  # measured <= 0.231; margin 0.12 deg
+POSE_MAX_DEG = 1.6  # measured <= 1.37, margin 0.23 (docs/method.md: ~1.5 deg on grid edges)
+POSE_MAX_M = 1.6e-3  # measured <= 1.29 mm; margin 0.3 mm
+
+
 @pytest.mark.parametrize("name,poly", [("box", BOX), ("tri", TRI), ("L", L_SHAPE)])
 def test_pose_change_is_recovered(name, poly):
     pose0 = Pose2D(0.02, -0.03, 0.7)
     perc, obs0 = perceive_first(render_prism_depth(CAM, poly, H, pose0))
-    tracker = PoseTracker(perc, obs0)
     # the frame is fixed to the object: its true pose in any image is pose o (pose0^-1 o frame0)
     f_obj = pose0.to_object(np.array([perc.frame_pose.x_m, perc.frame_pose.y_m]))
-    rng = np.random.default_rng(3)
     rot_err, pos_err = [], []
-    pose_prev = pose0
-    for _ in range(8):
-        pose = Pose2D(
-            pose_prev.x_m + rng.uniform(-0.03, 0.03),
-            pose_prev.y_m + rng.uniform(-0.03, 0.03),
-            pose_prev.yaw_rad + math.radians(rng.uniform(-25, 25)),
-        )
-        fit = tracker.fit(observe(render_prism_depth(CAM, poly, H, pose)))
-        true_rot = math.degrees(pose.yaw_rad - pose0.yaw_rad)
-        rot_err.append(abs(math.degrees(fit.pose.yaw_rad) - true_rot))
-        pos_err.append(np.hypot(*(pose.to_world(f_obj) - [fit.pose.x_m, fit.pose.y_m])))
-        pose_prev = pose
-    assert np.median(rot_err) < 0.35 and max(rot_err) < 0.8, rot_err
-    assert max(pos_err) < 1e-3, pos_err
+    for seed in POSE_WALK_SEEDS:
+        tracker = PoseTracker(perc, obs0)
+        rng = np.random.default_rng(seed)
+        pose_prev = pose0
+        for _ in range(8):
+            pose = Pose2D(
+                pose_prev.x_m + rng.uniform(-0.03, 0.03),
+                pose_prev.y_m + rng.uniform(-0.03, 0.03),
+                pose_prev.yaw_rad + math.radians(rng.uniform(-25, 25)),
+            )
+            fit = tracker.fit(observe(render_prism_depth(CAM, poly, H, pose)))
+            true_rot = math.degrees(pose.yaw_rad - pose0.yaw_rad)
+            rot_err.append(abs((math.degrees(fit.pose.yaw_rad) - true_rot + 180) % 360 - 180))
+            pos_err.append(np.hypot(*(pose.to_world(f_obj) - [fit.pose.x_m, fit.pose.y_m])))
+            pose_prev = pose
+    assert np.median(rot_err) < POSE_MEDIAN_DEG, np.round(rot_err, 3)
+    assert max(rot_err) < POSE_MAX_DEG, np.round(rot_err, 3)
+    assert max(pos_err) < POSE_MAX_M, np.round(pos_err, 5)
 
 
 def test_ccw_rotation_is_positive():
@@ -120,7 +157,9 @@ def test_ccw_rotation_is_positive():
     tracker = PoseTracker(perc, obs0)
     before = tracker.last
     after = tracker.fit(observe(render_prism_depth(CAM, TRI, H, Pose2D(0.0, 0.0, 0.2)))).pose
-    assert relative_rotation_deg(before, after) == pytest.approx(math.degrees(0.2), abs=0.5)
+    # the sign is the point; the tolerance is the tracker's: measured error 0.13 deg here and
+    # <= 0.73 deg over 24 start yaws 0-0.3 rad (the same 0.2 rad turn); margin 0.27 deg
+    assert relative_rotation_deg(before, after) == pytest.approx(math.degrees(0.2), abs=1.0)
 
 
 def test_large_rotation_is_found():
@@ -129,7 +168,10 @@ def test_large_rotation_is_found():
     perc, obs0 = perceive_first(render_prism_depth(CAM, TRI, H, pose0))
     tracker = PoseTracker(perc, obs0)
     fit = tracker.fit(observe(render_prism_depth(CAM, TRI, H, Pose2D(0.05, 0.0, 2.0))))
-    assert math.degrees(fit.pose.yaw_rad) == pytest.approx(math.degrees(2.0), abs=0.8)
+    # a wrong basin is off by tens of degrees; the fit's own error measured 0.32 deg here and
+    # <= 0.78 deg over 24 start yaws 0-0.3 rad (the same 2 rad spin): bound 0.8 sat at the
+    # edge, now 1.2 (margin 0.42 deg)
+    assert math.degrees(fit.pose.yaw_rad) == pytest.approx(math.degrees(2.0), abs=1.2)
 
 
 def test_symmetry_is_reported():
