@@ -1,0 +1,120 @@
+"""Cross-engine agreement: the study's own first pushes on pybullet and MuJoCo vs planar.
+
+    .venv/bin/python bench/engine_agreement.py [--pushes 400] [--engines pybullet mujoco]
+        [--floor-friction model|native]
+
+Pushes are drawn from the grid of both floors and both speeds (`job_specs` of
+bench/episode_profile.py, a strided slice holding every object and condition): for each
+episode, the scene is built as `run_episode` builds it (object, CoM, Izz, frictions, start
+yaw), the contact is Algorithm 1's first choice on the planar backend's first image, and that
+same world-frame push (start, direction, travel, speed) runs on every backend. Printed per
+engine: the median |rotation / planar rotation - 1| over pushes where planar turns more than
+1 deg, the share of those with the same sign, the largest disagreements, and the cost per push.
+Targets (issue "pybullet and MuJoCo pass the physics contract"): median <= 10%, same sign
+>= 99%, over >= 400 pushes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+sys.path.insert(0, os.path.dirname(__file__))
+
+from episode_profile import job_specs, strided  # noqa: E402
+
+from comexp.episode import build_scene  # noqa: E402
+from comexp.estimator import ComEstimator  # noqa: E402
+from comexp.perception import perceive_first  # noqa: E402
+from comexp.simulator import contact_push, make_simulator  # noqa: E402
+
+
+def first_push(planar, spec):
+    """Algorithm 1's first push for an episode, from the planar backend's first image."""
+    scene = build_scene(spec)
+    planar.build(scene)
+    perc, _ = perceive_first(planar.render_depth(), spec.estimator.contact_spacing_px)
+    est = ComEstimator(
+        perc.region_m,
+        perc.contacts_m,
+        perc.contact_normals,
+        perc.pixel_m,
+        spec.estimator,
+        outline_m=perc.outline_m,
+        pusher_radius_m=scene.pusher.radius_m,
+    )
+    choice = est.next_push()
+    if choice is None:
+        return scene, None
+    P, N = choice
+    f = perc.frame_pose
+    cmd = contact_push(
+        f.to_world(P),
+        N,  # the estimator frame has yaw 0 in the world at the first image
+        spec.push_length_cm / 100.0,
+        spec.speed_cm_s / 100.0,
+        scene.pusher.radius_m,
+    )
+    return scene, cmd
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pushes", type=int, default=400)
+    ap.add_argument("--engines", nargs="+", default=["pybullet", "mujoco"])
+    ap.add_argument("--floor-friction", default="model", choices=["model", "native"])
+    args = ap.parse_args()
+    per_job = math.ceil(args.pushes / 4)
+    specs = []
+    for floor in ("iso", "aniso"):
+        for speed in (40.0, 4.0):
+            specs += strided(job_specs("planar", floor, speed), per_job)
+    planar = make_simulator("planar")
+    engines = {e: make_simulator(e, floor_friction=args.floor_friction) for e in args.engines}
+    rows = []
+    cost = {e: 0.0 for e in ["planar", *args.engines]}
+    for spec in specs:
+        scene, cmd = first_push(planar, spec)
+        if cmd is None:
+            continue
+        row = {"spec": spec}
+        for name, sim in [("planar", planar), *engines.items()]:
+            sim.build(scene)
+            t0 = time.perf_counter()
+            out = sim.push(cmd)
+            cost[name] += time.perf_counter() - t0
+            row[name] = out.rotation_deg if out.ok else float("nan")
+            row[name + "_status"] = out.status.value
+        rows.append(row)
+    n = len(rows)
+    print(
+        f"engine agreement: {n} first pushes of the grid (both floors, both speeds), "
+        f"engine floor friction = {args.floor_friction}"
+    )
+    print()
+    print(
+        "| engine | pushes turning > 1 deg | median abs(ratio - 1) | same sign | "
+        "worst ratios | s per push (planar) |"
+    )
+    print("|---|---|---|---|---|---|")
+    for e in args.engines:
+        turning = [r for r in rows if abs(r["planar"]) > 1.0 and math.isfinite(r[e])]
+        dev = [abs(r[e] / r["planar"] - 1.0) for r in turning]
+        same = sum(1 for r in turning if r[e] * r["planar"] > 0)
+        worst = sorted(turning, key=lambda r: -abs(r[e] / r["planar"] - 1.0))[:3]
+        worst_txt = ", ".join(f"{r['spec'].object} {r[e]:.1f}/{r['planar']:.1f}" for r in worst)
+        failed = sum(1 for r in rows if r[e + "_status"] != "ok")
+        print(
+            f"| {e} | {len(turning)} ({failed} pushes failed) | "
+            f"{100 * statistics.median(dev):.1f}% | {100 * same / max(len(turning), 1):.1f}% | "
+            f"{worst_txt} | {cost[e] / n:.3f} ({cost['planar'] / n:.3f}) |"
+        )
+
+
+if __name__ == "__main__":
+    main()
