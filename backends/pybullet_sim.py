@@ -33,7 +33,6 @@ import tempfile
 from collections.abc import Sequence
 
 import numpy as np
-import pybullet as pb
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
 from comexp.scene import (
@@ -50,6 +49,28 @@ from comexp.simulator import (
     Simulator,
     pusher_contact_height_m,
 )
+
+
+def _import_pybullet_quietly():
+    """pybullet prints its build time on stderr at import, from C: a driver that only needs
+    this module's physics identity would break its one-line errors with it."""
+    import sys
+
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        import pybullet
+
+        return pybullet
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+pb = _import_pybullet_quietly()
+
 
 # Pusher mass (kg): 500x the object's, so contact impulses change its velocity by < 0.2 %
 # of the object's change within a step; its velocity is re-imposed before every step.

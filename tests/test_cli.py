@@ -64,7 +64,7 @@ def rows(db: Path, sql: str) -> list[tuple]:
 def test_help_and_cfg_work_from_any_directory(tmp_path: Path) -> None:
     r = comexp(tmp_path, "--help")
     assert r.returncode == 0, r.stderr
-    assert "backend: mujoco, pybullet" in r.stdout and "floor: aniso, iso" in r.stdout
+    assert "backend: mujoco, planar, pybullet" in r.stdout and "floor: aniso, iso" in r.stdout
     assert "l_shape" in r.stdout  # the object group ships with the package
     r = comexp(tmp_path, "--cfg", "job", "floor=aniso", "speed=4")
     assert r.returncode == 0, r.stderr

@@ -27,7 +27,7 @@ GATE_WAIT_S = 10.0  # only a broken run waits this long
 class FakeSimulator:
     builds = 0
 
-    def __init__(self, backend: str) -> None:
+    def __init__(self, backend: str, **options) -> None:  # options: the backend's own
         if backend == "broken":
             raise RuntimeError("engine failed to start")
         self.backend = backend
