@@ -332,7 +332,7 @@ class PlanarSimulator(Simulator):
 
 # The model's revision: bump when a change changes results (it is part of episode identity).
 PHYSICS_VERSION = "planar-1"
-ENGINE_DISTRIBUTION = None
+ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
 PHYSICS_SETTINGS = FrictionSettings()
 
 __all__ = ["PlanarModel", "PlanarSimulator"]

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 from test_cli import FAKE, comexp
 
-from comexp.db import ResultsDB, redact_url
+from comexp.db import SCHEMA_VERSION, ResultsDB, redact_url
 
 PASSWORD = "Pw-7f3kQz_s3cret"  # distinctive, so a grep for it cannot match anything else
 USER = "comexp_test"
@@ -306,4 +306,5 @@ def test_concurrent_first_opens_create_the_schema_once(pg: PgServer) -> None:
         t.join(timeout=60)
     assert errors == []
     with ResultsDB(url, readonly=True) as db, db.engine.connect() as conn:
-        assert conn.exec_driver_sql("SELECT value FROM comexp_meta").scalars().all() == ["2"]
+        rows = conn.exec_driver_sql("SELECT value FROM comexp_meta").scalars().all()
+        assert rows == [str(SCHEMA_VERSION)]

@@ -113,9 +113,12 @@ def test_blocked_start_leaves_the_scene_untouched(sim):
 
 def test_free_rigid_pusher_keeps_its_height_and_orientation(sim):
     """The pusher is a heavy free body driven by velocity: gravity is cancelled and contact
-    torques must not tilt it, or it would touch the floor or push at the wrong height."""
+    torques must not tilt it, or it would touch the floor or push at the wrong height (a
+    sphere at the line contact's resultant height, `pusher_contact_height_m`)."""
+    from comexp.simulator import pusher_contact_height_m
+
     scene = SceneSpec(FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.03, mu_pusher=1.0))
-    z0 = scene.pusher.clearance_m + scene.pusher.length_m / 2.0
+    z0 = pusher_contact_height_m(scene.pusher, scene.obj.height_m)
     for speed in (0.4, 0.04):
         sim.build(scene)
         out = sim.push(contact_push((-0.04, 0.015), (1.0, 0.0), 0.03, speed, scene.pusher.radius_m))
