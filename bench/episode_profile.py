@@ -240,14 +240,24 @@ def result_record(r: EpisodeResult) -> dict[str, Any]:
 
 
 def profile(
-    backend: str, n: int, speed: float, floor: str, dump: str | None, raw_s: float
+    backend: str,
+    n: int,
+    speed: float,
+    floor: str,
+    dump: str | None,
+    raw_s: float,
+    options: dict[str, str] | None = None,
 ) -> dict[str, Any]:
-    specs = strided(job_specs(backend, floor, speed), n)
-    sim = make_simulator(backend)
+    opts = options or {}
+    specs = strided(
+        job_specs(backend, floor, speed, [f"backend.{k}={v}" for k, v in opts.items()]), n
+    )
+    sim = make_simulator(backend, **opts)
     out_digest = source_digest(backend)
     timer = PhaseTimer()
     out: dict[str, Any] = {
         "backend": backend,
+        "options": opts,
         "episodes": len(specs),
         "speed": speed,
         "source": out_digest,
@@ -304,7 +314,8 @@ def profile(
 
 def report(o: dict[str, Any]) -> None:
     print(
-        f"== {o['backend']} (source {o['source']}), speed {o['speed']:g} cm/s: "
+        f"== {o['backend']} {o.get('options') or ''} (source {o['source']}), "
+        f"speed {o['speed']:g} cm/s: "
         f"{o['episodes']} episodes, one worker"
     )
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} (1, 5 min)")
@@ -421,7 +432,12 @@ def compare_baseline(backend: str, n: int, speed: float, floor: str, baseline: s
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--backend", choices=("pybullet", "mujoco"), default="pybullet")
+    ap.add_argument("--backend", choices=("planar", "pybullet", "mujoco"), default="pybullet")
+    ap.add_argument(
+        "--floor-friction",
+        choices=("model", "native"),
+        help="engines: backend.floor_friction (default: the config's, model)",
+    )
     ap.add_argument("--episodes", type=int, default=40)
     ap.add_argument("--speed", type=float, default=40.0, help="cm/s (40 dynamic, 4 quasi-static)")
     ap.add_argument("--floor", choices=("iso", "aniso"), default="iso")
@@ -436,7 +452,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(lines))
         return 0
     with engine_stdout_silenced(not a.engine_output):
-        o = profile(a.backend, a.episodes, a.speed, a.floor, a.dump, a.raw_seconds)
+        opts = {"floor_friction": a.floor_friction} if a.floor_friction else {}
+        o = profile(a.backend, a.episodes, a.speed, a.floor, a.dump, a.raw_seconds, opts)
     report(o)
     return 0
 
