@@ -293,10 +293,6 @@ class PybulletSimulator(Simulator):
             angularDamping=0.0,
             activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING,
             physicsClientId=c,
-            # friction in the horizontal plane only, as in the model: Bullet's vertical friction
-            # at a sticky pusher held the object's side and tilted it steadily while pushing
-            # (1.14 deg / 0.49 mm measured on rect_8x5 with mu_p 1; 0.28 deg / 0.11 mm without)
-            anisotropicFriction=[1.0, 1.0, 0.0],
         )
         pb.setCollisionFilterPair(self._pusher, self._floor, -1, -1, 0, physicsClientId=c)
         self._teleport_pusher(PARK_XY_M)

@@ -1,8 +1,8 @@
 """Contract cases the engines fail today, with the values measured on this machine.
 
 Measured with `COMEXP_CONTRACT_STRICT=1 .venv/bin/python -m pytest tests/test_contract.py
---tb=line -k "not planar"` (engines with their default `floor_friction=model`; 5 of 458 engine
-cases failed on 2026-12-01).
+--tb=line -k "not planar" -m "slow or not slow"` (engines with their default
+`floor_friction=model`, the full sweep: 4 of 778 engine cases fail, all pybullet, 2026-12-01).
 tests/test_contract.py marks exactly these cases xfail(strict=False), so a fix shows as XPASS;
 docs/physics.md ("Known limitations") explains each.
 """
@@ -18,14 +18,5 @@ KNOWN_FAILURES: dict[tuple[str, str], tuple[frozenset[str], str]] = {
         frozenset(["rect_12x4-1--2.1-1.0-4cm_s", "rect_12x4-1-0.3-1.0-4cm_s"]),
         "the same steady tilt under a sticky pusher grows past 15 deg on the narrow rect_12x4 "
         "(CoM 1, mu 1, 4 cm/s): reported tipped",
-    ),
-    ("mujoco", "test_same_push_at_any_yaw_turns_the_same"): (
-        frozenset(["0.1-40cm_s"]),
-        "bimodal on mu 0.1 at 40 cm/s: 49.24 or 53.15 deg by yaw (planar 51.2): the pusher "
-        "leaves or keeps the turning object, decided by float rounding",
-    ),
-    ("mujoco", "test_moment_of_impact_within_a_step_does_not_matter"): (
-        frozenset(["0.1"]),
-        "the same bimodality: 49.24 .. 52.06 deg over impacts shifted by 0.2-0.8 steps",
     ),
 }

@@ -374,3 +374,25 @@ def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
     )[0]
     assert n == 20 and ok >= 15
     assert mean_err < 3.0  # cm: an estimator that works at all beats the footprint size
+
+
+def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path) -> None:
+    """`backend=planar` behind the same command line: real physics, perception and estimator,
+    stored with the planar physics identity."""
+    from comexp.db import ResultsDB
+
+    r = comexp(
+        tmp_path,
+        "backend=planar",
+        "grid.objects=[rect_8x5]",
+        *SMALL,
+        "floor.mu=[1.0]",
+        "db=results/p.db",
+    )
+    assert r.returncode == 0, r.stderr
+    assert "planar iso 40 cm/s: ran 1 episodes" in r.stdout, r.stdout
+    with ResultsDB(tmp_path / "results" / "p.db", readonly=True) as db:
+        (row,) = db.episodes(columns=["backend", "status", "error_cm", "physics"])
+    assert row["backend"] == "planar" and row["status"] == "ok", row
+    assert row["physics"].startswith("planar/planar-")
+    assert row["error_cm"] < 3.0
