@@ -212,14 +212,16 @@ def mask_pusher(
     v1 = min(int(np.ceil(uv[:, 1].max())) + 1, cam.height_px - 1)
     if u1 < u0 or v1 < v0:
         return img
-    vv, uu = np.mgrid[v0 : v1 + 1, u0 : u1 + 1]
     d = depth[v0 : v1 + 1, u0 : u1 + 1]
-    p = cam.pixel_to_world(uu, vv, d)
-    hit = np.hypot(p[..., 0] - x, p[..., 1] - y) < r
+    vv, uu = np.nonzero(d < hz - MIN_HEIGHT_M)  # only what is above the floor can be it
+    if len(vv) == 0:
+        return img
+    p = cam.pixel_to_world(uu + u0, vv + v0, d[vv, uu])
+    hit = np.hypot(p[:, 0] - x, p[:, 1] - y) < r
     if not hit.any():
         return img
     out = depth.copy()
-    out[v0 : v1 + 1, u0 : u1 + 1][hit] = hz
+    out[vv[hit] + v0, uu[hit] + u0] = hz
     return DepthImage(out, cam)
 
 
@@ -237,7 +239,7 @@ def observe_boundary(
     near_xy_m: tuple[float, float] | None = None,
     reach_m: float = 0.15,
     min_height_m: float = MIN_HEIGHT_M,
-    max_points: int = 96,
+    max_points: int = 64,
 ) -> TrackingView:
     """The object's outer boundary in one frame, cheaply: only a window of `reach_m` around
     `near_xy_m` (the last known position) is thresholded, no connected components (the
@@ -401,7 +403,15 @@ class PoseTracker:
         diff = x - self.ref[j]
         return np.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]), j
 
-    def _icp(self, q: np.ndarray, yaw0: float, t0: np.ndarray, max_iter: int = 40) -> PoseFit:
+    def _icp(
+        self,
+        q: np.ndarray,
+        yaw0: float,
+        t0: np.ndarray,
+        max_iter: int = 40,
+        tol_rad: float = 1e-7,
+        tol_m: float = 1e-8,
+    ) -> PoseFit:
         """Fit world->frame transform x = R(phi) q + s; returns the frame's pose in the world."""
         phi = -yaw0
         s = -_rot(phi) @ t0
@@ -425,7 +435,7 @@ class PoseTracker:
             rms = float(np.sqrt(np.mean(r_all * r_all))) / self.pixel_m
             phi += float(delta[0])
             s = _rot(float(delta[0])) @ s + delta[1:]
-            if abs(delta[0]) < 1e-7 and np.hypot(delta[1], delta[2]) < 1e-8:
+            if abs(delta[0]) < tol_rad and np.hypot(delta[1], delta[2]) < tol_m:
                 break
         yaw = -phi
         t = -_rot(yaw) @ s
@@ -480,7 +490,7 @@ class PoseTracker:
         rate = (y1 - y0) / (t1 - t0) if t1 > t0 else 0.0
         return y1 + rate * (t_s - t1)
 
-    def track(self, view: TrackingView, t_s: float, max_iter: int = 12) -> PoseFit:
+    def track(self, view: TrackingView, t_s: float, max_iter: int = 8) -> PoseFit:
         """Pose in a tracking frame taken `t_s` into the push (after `begin_push`).
 
         Registered against the first image, like `fit`, so errors do not accumulate from
@@ -491,7 +501,8 @@ class PoseTracker:
         """
         yaw0 = self.predicted_yaw(t_s)
         t0 = view.centroid_m - _rot(yaw0) @ self.ref_centroid
-        f = self._icp(view.contour_m, yaw0, t0, max_iter=max_iter)
+        # converged to 0.05 deg / 0.1 mm: a frame only carries the yaw to the right basin
+        f = self._icp(view.contour_m, yaw0, t0, max_iter=max_iter, tol_rad=1e-3, tol_m=1e-4)
         p = f.pose
         yaw = yaw0 + _wrap(p.yaw_rad - yaw0)
         f = PoseFit(Pose2D(p.x_m, p.y_m, yaw), f.rms_px, f.iterations)
