@@ -89,6 +89,20 @@ class EpisodeConfig:
     recenter_beyond_cm: float = 10.0  # put the object back at the centre beyond this; 0: never
 
 
+# A commodity depth camera (RealSense D4xx, Azure Kinect, ...) streams depth at up to 30 fps.
+MAX_CAMERA_FPS = 30.0
+
+
+@dataclass
+class CameraConfig:
+    """The depth camera. `fps`: tracking frames per second while the object moves during a
+    push, so that the rotation is followed frame to frame (unwrapped); 0 = the images before
+    and after each push only. The default is the lowest measured rate that unwraps every
+    rotation of the study (docs/method.md, "Tracking during the push")."""
+
+    fps: float = 10.0
+
+
 @dataclass
 class RayConfig:
     address: str | None = None  # None: start a local Ray; "auto" or host:port: join a cluster
@@ -176,6 +190,7 @@ class ExperimentConfig:
     grid: GridConfig = field(default_factory=GridConfig)
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
     workers: int = 2
     ray: RayConfig = field(default_factory=RayConfig)
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
@@ -292,6 +307,12 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     if not _finite(ep.recenter_beyond_cm) or ep.recenter_beyond_cm < 0:
         msg = f"episode.recenter_beyond_cm must be >= 0 (0: never), got {ep.recenter_beyond_cm!r}"
         raise ConfigError(msg)
+    fps = cfg.camera.fps
+    if not _finite(fps) or not 0 <= fps <= MAX_CAMERA_FPS:
+        raise ConfigError(
+            f"camera.fps must be between 0 (before and after only) and {MAX_CAMERA_FPS:g} "
+            f"(a commodity depth camera), got {fps!r}"
+        )
     if g.objects is not None:
         if not g.objects:
             raise ConfigError("grid.objects must not be empty (omit it to use every object)")

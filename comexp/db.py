@@ -55,7 +55,8 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from comexp.episode import EpisodeResult, EpisodeSpec
 
-SCHEMA_VERSION = 3  # 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics
+# 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics; 4: pushes.n_frames
+SCHEMA_VERSION = 4
 KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
@@ -204,6 +205,8 @@ class Push(Base):
     rotation_true_deg: Mapped[float] = mapped_column(Float)
     decision: Mapped[str] = mapped_column(String(16))  # ccw | cw | band
     region_px: Mapped[int] = mapped_column(Integer)
+    # tracking frames the measured rotation went through (0: the images before and after)
+    n_frames: Mapped[int] = mapped_column(Integer, default=0)
 
     __table_args__ = (UniqueConstraint("episode_id", "k", name="uq_pushes_episode_k"),)
 
@@ -773,6 +776,7 @@ def _push_row(p: Any) -> dict[str, Any]:
         "rotation_true_deg": float(p.rotation_true_deg),
         "decision": p.decision,
         "region_px": int(p.region_px),
+        "n_frames": int(getattr(p, "n_frames", 0)),
     }
 
 

@@ -16,9 +16,16 @@ import numpy as np
 
 from comexp.estimator import ComEstimator, EstimatorSettings
 from comexp.geometry import prism_object
-from comexp.perception import PerceptionError, PoseTracker, observe, perceive_first
+from comexp.perception import (
+    PerceptionError,
+    PoseTracker,
+    mask_pusher,
+    observe,
+    observe_boundary,
+    perceive_first,
+)
 from comexp.scene import FloorSpec, Pose2D, PusherSpec, SceneSpec
-from comexp.simulator import Simulator, contact_push, wrap_angle
+from comexp.simulator import Frame, Simulator, contact_push, wrap_angle
 
 __all__ = [
     "EpisodeResult",
@@ -57,6 +64,9 @@ class EpisodeSpec:
     # engine version, backend and protocol settings); part of the episode's identity, so a
     # database is never resumed across physics versions. "" = not pinned (library use).
     physics: str = ""
+    # Tracking frames per second taken while the object moves during a push (`camera.fps`);
+    # 0 = the images before and after each push only. Vision only (the oracle needs none).
+    camera_fps: float = 0.0
 
     @classmethod
     def for_object(
@@ -86,6 +96,7 @@ class PushRecord:
     rotation_true_deg: float
     decision: str  # ccw | cw | band
     region_px: int  # region size after the update
+    n_frames: int = 0  # tracking frames the rotation was measured through (0: before/after)
 
 
 @dataclass(frozen=True)
@@ -217,14 +228,33 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                 speed_m_s,
                 scene.pusher.radius_m,
             )
-            out = sim.push(cmd)
+            used = 0
+            if tracker is not None and spec.camera_fps > 0:
+                tracker.begin_push()
+
+                def on_frame(f: Frame) -> None:
+                    nonlocal used
+                    img = mask_pusher(f.image, f.pusher_xy_m, f.pusher_radius_m)
+                    last = tracker.last
+                    try:
+                        view = observe_boundary(img, (last.x_m, last.y_m))
+                    except PerceptionError:
+                        return  # a frame that shows no object is not used
+                    tracker.track(view, f.t_s)
+                    used += 1
+
+                out = sim.push(cmd, on_frame=on_frame, frame_interval_s=1.0 / spec.camera_fps)
+            else:
+                out = sim.push(cmd)
             sim_time += out.sim_time_s
             if not out.ok:
                 return failed(out.status.value, f"push {k}: {out.status.value}")
             if not out.contact_made:
                 details.append(f"push {k}: pusher missed the object")
             true_now = sim.true_pose()
-            rot_true = math.degrees(wrap_angle(true_now.yaw_rad - true_prev.yaw_rad))
+            rot_true = out.true_rotation_deg
+            if rot_true is None:  # a simulator that does not track it: wrapped
+                rot_true = math.degrees(wrap_angle(true_now.yaw_rad - true_prev.yaw_rad))
             if needs_recentering(true_now, spec.recenter_beyond_cm):
                 sim.build(replace(scene, initial_pose=Pose2D(0.0, 0.0, true_now.yaw_rad)))
                 # Placement keeps the yaw, so it adds no rotation; the next image (vision) or the
@@ -233,9 +263,12 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                 details.append(f"re-centred after push {k}")
             if tracker is not None:
                 new_frame = tracker.fit(observe(sim.render_depth())).pose
+                # the tracker's yaw is unwrapped: through frames it may turn beyond half a turn
+                turn = new_frame.yaw_rad - frame.yaw_rad
+                rot = math.degrees(turn if used else wrap_angle(turn))
             else:  # oracle: carry the frame with the true rigid motion
                 new_frame = _compose(true_now, _relative(true_prev, frame))
-            rot = math.degrees(wrap_angle(new_frame.yaw_rad - frame.yaw_rad))
+                rot = rot_true
             decision = est.observe(P, N, rot)
             frame, true_prev = new_frame, true_now
             c_obj = frame_in_obj.to_world(P)
@@ -251,6 +284,7 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                     rotation_true_deg=rot_true,
                     decision=decision,
                     region_px=est.region_px,
+                    n_frames=used,
                 )
             )
         est_obj = frame_in_obj.to_world(est.estimate_m) * 100.0

@@ -76,6 +76,7 @@ def expand_grid(
                 push_length_cm=float(cfg.episode.push_length_cm),
                 recenter_beyond_cm=float(cfg.episode.recenter_beyond_cm),
                 physics=physics,
+                camera_fps=float(cfg.camera.fps),
             )
             for izz in cfg.grid.izz_scales:
                 for mu_x, mu_y in floors:

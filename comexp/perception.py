@@ -182,6 +182,94 @@ def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
     )
 
 
+def mask_pusher(
+    img: DepthImage, pusher_xy_m: tuple[float, float], radius_m: float, margin_m: float = 1e-3
+) -> DepthImage:
+    """The image with the pusher removed (its pixels set to the floor's depth).
+
+    A pixel is the pusher's when its back-projected point (with its own depth) lies within
+    `radius_m + margin_m` of the pusher's axis: the pusher is a round body about a vertical
+    axis, so every point of it does, while a point of the object is at least `radius_m` from
+    the axis (it touches, does not penetrate), so at most a sliver of the object at the
+    contact goes with it. Only a small window around the pusher's projection is looked at.
+    """
+    cam = img.camera
+    depth = img.depth_m
+    hz = floor_depth_m(cam)
+    r = radius_m + margin_m
+    x, y = pusher_xy_m
+    # the pusher's projection at the floor and up to the camera's near end of the object
+    corners = np.array([[x - r, y - r], [x + r, y + r]])
+    uv = np.concatenate(
+        [
+            cam.world_to_pixel(corners[:, 0], corners[:, 1], 0.0),
+            cam.world_to_pixel(corners[:, 0], corners[:, 1], 0.5 * hz),
+        ]
+    )
+    u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + 1, cam.width_px - 1)
+    v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + 1, cam.height_px - 1)
+    if u1 < u0 or v1 < v0:
+        return img
+    d = depth[v0 : v1 + 1, u0 : u1 + 1]
+    vv, uu = np.nonzero(d < hz - MIN_HEIGHT_M)  # only what is above the floor can be it
+    if len(vv) == 0:
+        return img
+    p = cam.pixel_to_world(uu + u0, vv + v0, d[vv, uu])
+    hit = np.hypot(p[:, 0] - x, p[:, 1] - y) < r
+    if not hit.any():
+        return img
+    out = depth.copy()
+    out[vv[hit] + v0, uu[hit] + u0] = hz
+    return DepthImage(out, cam)
+
+
+@dataclass(frozen=True)
+class TrackingView:
+    """What a tracking frame needs: the object's boundary in world metres and the area
+    centroid of the polygon it bounds (`observe_boundary`)."""
+
+    contour_m: np.ndarray  # (m, 2)
+    centroid_m: np.ndarray  # (2,)
+
+
+def observe_boundary(
+    img: DepthImage,
+    near_xy_m: tuple[float, float] | None = None,
+    reach_m: float = 0.15,
+    min_height_m: float = MIN_HEIGHT_M,
+    max_points: int = 64,
+) -> TrackingView:
+    """The object's outer boundary in one frame, cheaply: only a window of `reach_m` around
+    `near_xy_m` (the last known position) is thresholded, no connected components (the
+    largest external contour is the object once the pusher is masked), no normal fits, and
+    at most `max_points` boundary points (evenly strided). A tracking frame only has to
+    place the pose in the right symmetric basin; the image at rest is measured in full."""
+    cam = img.camera
+    depth = img.depth_m
+    h, w = depth.shape
+    u0, v0, u1, v1 = 0, 0, w - 1, h - 1
+    if near_xy_m is not None:
+        x, y = near_xy_m
+        xs, ys = np.array([x - reach_m, x + reach_m]), np.array([y + reach_m, y - reach_m])
+        uv = cam.world_to_pixel(xs, ys, 0.0)
+        u0, u1 = max(int(uv[0, 0]), 0), min(int(math.ceil(uv[1, 0])), w - 1)
+        v0, v1 = max(int(uv[0, 1]), 0), min(int(math.ceil(uv[1, 1])), h - 1)
+    win = depth[v0 : v1 + 1, u0 : u1 + 1]
+    above = (np.isfinite(win) & (win < floor_depth_m(cam) - min_height_m)).astype(np.uint8)
+    contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        raise PerceptionError("no object above the floor in the tracking frame", "left_view")
+    c = max(contours, key=len)[:, 0, :]
+    if len(c) > max_points:
+        c = c[:: math.ceil(len(c) / max_points)]
+    cu, cv_ = c[:, 0] + u0, c[:, 1] + v0
+    contour = cam.pixel_to_world(cu, cv_, depth[cv_, cu])[:, :2]
+    centre = polygon_centroid(contour) if len(contour) >= 3 else contour.mean(axis=0)
+    return TrackingView(contour, centre)
+
+
 def hull_region(hull_m: np.ndarray, spacing_m: float) -> np.ndarray:
     """Regular grid points (spacing = one pixel, grid anchored at the frame origin) inside a
     polygon: the paper's "pixels inside the convex hull", as metric points on the floor.
@@ -300,7 +388,11 @@ class PoseTracker:
         self.ref_center = first_obs.points_m.mean(axis=0) - np.array(
             [first.frame_pose.x_m, first.frame_pose.y_m]
         )
+        self.ref_centroid = polygon_centroid(self.ref)
         self.last = first.frame_pose
+        # tracking within a push (`begin_push`, `track`): (t_s, yaw_rad) of the push's start
+        # and of its frames so far, for the constant-rate prediction of the next yaw
+        self._history: list[tuple[float, float]] = []
 
     def _nearest(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance to, and index of, the nearest reference point for each row of x.
@@ -311,7 +403,15 @@ class PoseTracker:
         diff = x - self.ref[j]
         return np.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]), j
 
-    def _icp(self, q: np.ndarray, yaw0: float, t0: np.ndarray, max_iter: int = 40) -> PoseFit:
+    def _icp(
+        self,
+        q: np.ndarray,
+        yaw0: float,
+        t0: np.ndarray,
+        max_iter: int = 40,
+        tol_rad: float = 1e-7,
+        tol_m: float = 1e-8,
+    ) -> PoseFit:
         """Fit world->frame transform x = R(phi) q + s; returns the frame's pose in the world."""
         phi = -yaw0
         s = -_rot(phi) @ t0
@@ -335,7 +435,7 @@ class PoseTracker:
             rms = float(np.sqrt(np.mean(r_all * r_all))) / self.pixel_m
             phi += float(delta[0])
             s = _rot(float(delta[0])) @ s + delta[1:]
-            if abs(delta[0]) < 1e-7 and np.hypot(delta[1], delta[2]) < 1e-8:
+            if abs(delta[0]) < tol_rad and np.hypot(delta[1], delta[2]) < tol_m:
                 break
         yaw = -phi
         t = -_rot(yaw) @ s
@@ -368,8 +468,49 @@ class PoseTracker:
                 basins.append(f)
         good = [f for f in basins if f.rms_px <= best + 0.1]
         chosen = min(good, key=lambda f: abs(_wrap(f.pose.yaw_rad - prev.yaw_rad)))
+        # unwrapped: the yaw continues from the previous one, so that a tracked rotation over
+        # several frames may exceed half a turn
+        p = chosen.pose
+        yaw = prev.yaw_rad + _wrap(p.yaw_rad - prev.yaw_rad)
+        chosen = PoseFit(Pose2D(p.x_m, p.y_m, yaw), chosen.rms_px, chosen.iterations)
         self.last = chosen.pose
         return chosen
+
+    def begin_push(self) -> None:
+        """A push starts from the current pose, at rest: the next frames are predicted from it."""
+        self._history = [(0.0, self.last.yaw_rad)]
+
+    def predicted_yaw(self, t_s: float) -> float:
+        """The yaw at time `t_s` of the push, extrapolated at the rate of the last two frames
+        (the push's start counts as one, at rest): the seed of the next frame's fit."""
+        h = self._history
+        if len(h) < 2:
+            return self.last.yaw_rad
+        (t0, y0), (t1, y1) = h[-2], h[-1]
+        rate = (y1 - y0) / (t1 - t0) if t1 > t0 else 0.0
+        return y1 + rate * (t_s - t1)
+
+    def track(self, view: TrackingView, t_s: float, max_iter: int = 8) -> PoseFit:
+        """Pose in a tracking frame taken `t_s` into the push (after `begin_push`).
+
+        Registered against the first image, like `fit`, so errors do not accumulate from
+        frame to frame; seeded by the predicted yaw, so that between two frames the object
+        only has to turn by less than half its symmetry angle *more than predicted* for the
+        right basin to be found. One seed and few iterations: the frame only carries the
+        unwrapped yaw forward; the image at rest is then measured by `fit`, seeded here.
+        """
+        yaw0 = self.predicted_yaw(t_s)
+        t0 = view.centroid_m - _rot(yaw0) @ self.ref_centroid
+        # converged to 0.05 deg / 0.1 mm: a frame only carries the yaw to the right basin
+        f = self._icp(view.contour_m, yaw0, t0, max_iter=max_iter, tol_rad=1e-3, tol_m=1e-4)
+        p = f.pose
+        yaw = yaw0 + _wrap(p.yaw_rad - yaw0)
+        f = PoseFit(Pose2D(p.x_m, p.y_m, yaw), f.rms_px, f.iterations)
+        if not self._history:
+            self._history = [(0.0, self.last.yaw_rad)]
+        self._history.append((t_s, yaw))
+        self.last = f.pose
+        return f
 
     def symmetric_fold(self, tol_px: float = 0.3) -> int:
         """Largest n such that the outline rotated by 360/n deg registers onto itself (ICP from

@@ -12,7 +12,7 @@ import enum
 import importlib
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +61,10 @@ class PushOutcome:
     contact_made: bool
     max_pusher_lag_m: float  # worst |actual - commanded| pusher position during the push
     max_tilt_deg: float
+    n_frames: int = 0  # tracking frames handed to `on_frame` (Simulator.push)
+    # true CCW rotation over the push, unwrapped (summed from check to check, so a push may
+    # turn more than half a turn); None from a simulator that does not follow it
+    true_rotation_deg: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -70,6 +74,21 @@ class PushOutcome:
     def rotation_deg(self) -> float:
         """True CCW rotation of the object during the push, wrapped to (-180, 180]."""
         return math.degrees(wrap_angle(self.pose_after.yaw_rad - self.pose_before.yaw_rad))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A depth image taken during a push (`Simulator.push(on_frame=...)`).
+
+    The pusher may be in it: the engines render their pusher, touching the object's side.
+    Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
+    tracker can mask it (`comexp.perception.mask_pusher`).
+    """
+
+    image: DepthImage
+    t_s: float  # since the start of the push
+    pusher_xy_m: tuple[float, float]
+    pusher_radius_m: float
 
 
 def wrap_angle(a: float) -> float:
@@ -153,6 +172,11 @@ class Simulator(ABC):
         step i, moving straight between them. Returns (pusher touched the object during these
         steps, max tilt in deg over them). Appends every step's state to `trace` if set."""
 
+    def render_tracking_depth(self) -> DepthImage:
+        """The depth image of a tracking frame taken during a push; an engine may override it
+        with a cheaper renderer (a crop, a lower resolution) that keeps the camera model."""
+        return self.render_depth()
+
     def _engine_failure(self) -> PushStatus | None:
         """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
         return None
@@ -161,8 +185,22 @@ class Simulator(ABC):
         return PARK_XY_M
 
     # --- the push protocol ---------------------------------------------------------------
-    def push(self, cmd: PushCommand) -> PushOutcome:
-        """Execute the push, let the object come to rest, clear and park the pusher, report."""
+    def push(
+        self,
+        cmd: PushCommand,
+        on_frame: Callable[[Frame], None] | None = None,
+        frame_interval_s: float = 0.0,
+    ) -> PushOutcome:
+        """Execute the push, let the object come to rest, clear and park the pusher, report.
+
+        With `on_frame` and `frame_interval_s` > 0 the camera watches the push: at the first
+        protocol check at or after every multiple of `frame_interval_s` since the push began,
+        if the object is moving (not `at_rest`), a tracking frame is rendered and handed over.
+        Frames hang on the existing checks, so the steps an engine is asked for (`_advance`
+        calls) are the same with or without frames: watching never changes the physics. The
+        rate is therefore `1 / frame_interval_s` on average, each frame up to one check
+        (`check_every_steps` steps) late.
+        """
         s = self.settings
         dt = s.timestep_s
         camera = self._camera_model()
@@ -181,15 +219,36 @@ class Simulator(ABC):
         lag = 0.0
         status: PushStatus | None = None
         chunk = max(1, int(self.check_every_steps))
+        watch = on_frame is not None and frame_interval_s > 0
+        next_frame_s = frame_interval_s
+        n_frames = 0
+        last_yaw = before.pose.yaw_rad
+        turned = 0.0
 
         def run(targets: np.ndarray) -> ObjectState:
-            nonlocal steps, contact, status, max_tilt
+            nonlocal steps, contact, status, max_tilt, next_frame_s, n_frames, last_yaw, turned
             touched, tilt = self._advance(targets)
             steps += len(targets)
             contact = contact or touched
             st = self.object_state()
+            if st.is_finite:  # < half a turn between two checks (a few ms apart)
+                turned += wrap_angle(st.pose.yaw_rad - last_yaw)
+                last_yaw = st.pose.yaw_rad
             max_tilt = max(max_tilt, tilt, st.tilt_deg if st.is_finite else 0.0)
             status = self._engine_failure() or classify_state(st, outline, camera, s)
+            t_s = steps * dt
+            if watch and status is None and t_s >= next_frame_s - 1e-9:
+                next_frame_s = (math.floor(t_s / frame_interval_s + 1e-9) + 1) * frame_interval_s
+                if not at_rest(st, s):  # a still object shows nothing new: no frame
+                    xy = self._pusher_xy()
+                    frame = Frame(
+                        self.render_tracking_depth(),
+                        t_s,
+                        (float(xy[0]), float(xy[1])),
+                        self._pusher_radius_m(),
+                    )
+                    on_frame(frame)  # type: ignore[misc]
+                    n_frames += 1
             return st
 
         # 1) the straight path at the commanded speed; the pusher is where the path is at the
@@ -231,6 +290,8 @@ class Simulator(ABC):
                 if status is not None:
                     break
         after = self.object_state()
+        if after.is_finite:
+            turned += wrap_angle(after.pose.yaw_rad - last_yaw)
         if status is None or status is PushStatus.NOT_SETTLED:
             status = classify_state(after, outline, camera, s) or status
         if pusher_clearance_m(self._pusher_xy(), after, outline, self._pusher_radius_m()) > (
@@ -247,6 +308,8 @@ class Simulator(ABC):
             contact_made=contact,
             max_pusher_lag_m=lag,
             max_tilt_deg=max_tilt,
+            n_frames=n_frames,
+            true_rotation_deg=math.degrees(turned),
         )
 
     # the scene the protocol needs (every backend keeps the SceneSpec it built)

@@ -52,6 +52,7 @@ PUSH_COLUMNS = [
     "rotation_true_deg",
     "decision",
     "region_px",
+    "n_frames",
 ]
 SQUARE = ((-3.0, -3.0), (3.0, -3.0), (3.0, 3.0), (-3.0, 3.0))
 
