@@ -56,7 +56,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from comexp.episode import EpisodeResult, EpisodeSpec
 
 # 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics; 4: pushes.n_frames
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 4  # 4 also: episodes.camera_fps
 KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
@@ -159,6 +159,7 @@ class Episode(Base):
     recenter_beyond_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
     # what determined the physics (comexp.simulator.physics_identity); part of the episode key
     physics: Mapped[str] = mapped_column(String(200), default="")
+    camera_fps: Mapped[float] = mapped_column(Float, default=0.0)  # tracking frames per second
     w1: Mapped[float | None] = mapped_column(Float, nullable=True)
     w2: Mapped[float | None] = mapped_column(Float, nullable=True)
     theta_T_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -751,6 +752,7 @@ def _episode_row(sweep_id: int | None, key: str, r: EpisodeResult) -> dict[str, 
         "push_length_cm": float(s.push_length_cm),
         "recenter_beyond_cm": _opt_float(getattr(s, "recenter_beyond_cm", None)),
         "physics": getattr(s, "physics", "") or "",
+        "camera_fps": float(getattr(s, "camera_fps", 0.0)),
         "w1": float(w[0]) if len(w) > 0 else None,
         "w2": float(w[1]) if len(w) > 1 else None,
         "theta_T_deg": _opt_float(getattr(est, "theta_T_deg", None)),

@@ -51,6 +51,7 @@ CONDITION_COLUMNS: tuple[str, ...] = (
     "recenter_beyond_cm",
     "estimator",
     "physics",
+    "camera_fps",
 )
 FRICTION_COLUMNS = ("mu_floor_x", "mu_floor_y", "mu_pusher")
 # The paper's Tables II/III and Figs. 3/4 pool the friction grid and both Izz scales.
@@ -60,6 +61,7 @@ PROTOCOL_DEFAULTS: dict[str, Any] = {
     "mass_kg": 0.2,
     "push_length_cm": 3.0,
     "recenter_beyond_cm": 10.0,
+    "camera_fps": 10.0,
 }
 _DEFAULT_ESTIMATOR: dict[str, Any] = json.loads(canonical_json(EstimatorSettings()))
 # Core columns: always in a label (unless pooled), in this order.

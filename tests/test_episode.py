@@ -22,9 +22,11 @@ TRAP_CM = ((-5.0, -2.0), (5.0, -2.0), (2.5, 2.0), (-2.5, 2.0))
 
 
 def spec_for(
-    outline=BOX_CM, com=(1.5, 0.8), seed=0, backend="fake", speed=40.0, mu=1.0, **est
+    outline=BOX_CM, com=(1.5, 0.8), seed=0, backend="fake", speed=40.0, mu=1.0, fps=0.0, **est
 ) -> EpisodeSpec:
+    """The images before and after each push only, unless `fps` is given."""
     return EpisodeSpec(
+        camera_fps=fps,
         backend=backend,
         floor="iso",
         mu_floor_x=mu,
