@@ -19,6 +19,7 @@ each step, their own object-floor friction off (docs/physics.md).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -358,6 +359,20 @@ class WinklerPressure:
         )
 
 
+@functools.lru_cache(maxsize=64)
+def _cached_samples(outline: tuple, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    return footprint_samples(np.array(outline, dtype=float), n_target)
+
+
+def samples_of(outline_m: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    """`footprint_samples`, kept per outline: an episode rebuilds its scene for every push
+    (re-centring), and the polygon clipping was most of a planar build. Copies: the caller
+    owns them."""
+    key = tuple(tuple(float(v) for v in row) for row in np.asarray(outline_m, dtype=float))
+    pts, area = _cached_samples(key, int(n_target))
+    return pts.copy(), area.copy()
+
+
 def half_planes(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward unit normals n and offsets o of a convex polygon: inside is n . x <= o."""
     if shapely.Polygon(hull).exterior.is_ccw is False:
@@ -527,7 +542,7 @@ class FootprintFriction:
         outline = np.asarray(obj.outline_m, dtype=float)
         self.h_com = obj.height_m / 2.0
         self.z_push = pusher_contact_height_m(pusher, obj.height_m)
-        pts, area = footprint_samples(outline, self.set.samples)
+        pts, area = samples_of(outline, self.set.samples)
         self.d_obj = pts - self.com  # sample offsets from the CoM, object frame
         self.pressure = WinklerPressure(self.d_obj, area, self.m * GRAVITY_M_S2)
         self.sample_hull_n, self.sample_hull_o = half_planes(

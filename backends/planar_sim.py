@@ -457,7 +457,7 @@ class PlanarSimulator(Simulator):
 
 
 # The model's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "planar-1"
+PHYSICS_VERSION = "planar-2"  # 2: compiled steps; results moved by rounding only
 ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
 PHYSICS_SETTINGS = FrictionSettings()
 

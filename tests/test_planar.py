@@ -181,3 +181,16 @@ def test_engine_friction_impulse_holds_and_then_slides():
     assert imp[0] == pytest.approx(-0.5 * obj.mass_kg * 9.81 * 1e-3, rel=1e-6)
     assert abs(imp[1]) < 1e-12 and abs(imp[2]) < 1e-12
     assert fr.cop[0] == pytest.approx(0.5 * 0.015 / 2, rel=1e-6)
+
+
+def test_kept_samples_are_the_fresh_ones_and_the_callers_own():
+    """A rebuild reuses the footprint's samples (`samples_of`): the same numbers as a fresh
+    clipping, and a copy each time, so that nothing a caller does reaches the next build."""
+    from comexp.backends.floor_friction import samples_of
+
+    pts, a = footprint_samples(RECT, 400)
+    p1, a1 = samples_of(RECT, 400)
+    assert np.array_equal(p1, pts) and np.array_equal(a1, a)
+    p1[:] = 0.0
+    p2, _ = samples_of(RECT, 400)
+    assert np.array_equal(p2, pts)
