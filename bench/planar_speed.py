@@ -10,6 +10,11 @@ mu 0.1, 1 and anisotropic (0.1, 1) x lever arms 0, 5 mm, 1 cm x 4 and 40 cm/s, a
 push into the object's -x side (mu_pusher 0.5). With `--baseline DIR` (the two modules of
 another version) every push runs with both, interleaved on the same machine state: the
 wall-time ratio and the largest differences in rotation (deg) and final pose are printed.
+
+`--self-noise` instead runs each push twice on one version (the baseline if given), the
+second time with the object's start moved by 1e-15 m: the model's own sensitivity to
+rounding (its solver tolerances and stick/slip decisions), the floor under which two
+versions that round differently cannot agree.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import argparse
 import importlib.util
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -75,13 +81,29 @@ def run(sim_cls: type, scene: SceneSpec, cmd) -> tuple[float, object]:
     return time.perf_counter() - t0, out
 
 
+def self_noise(sim_cls: type, all_cases) -> None:
+    worst, worst_label = 0.0, ""
+    for label, scene, cmd in all_cases:
+        nudged = replace(scene, initial_pose=replace(scene.initial_pose, x_m=1e-15))
+        a, b = run(sim_cls, scene, cmd)[1], run(sim_cls, nudged, cmd)[1]
+        d = abs(a.rotation_deg - b.rotation_deg)
+        print(f"{label:48s} rot {a.rotation_deg:+9.4f} deg  nudged d_rot {d:.1e}")
+        if d > worst:
+            worst, worst_label = d, label
+    print(f"max |d rotation| under a 1e-15 m nudge: {worst:.2e} deg ({worst_label})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline", type=Path, help="directory with an older planar_sim.py")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per push (best kept)")
+    ap.add_argument("--self-noise", action="store_true", help="one version vs itself, nudged")
     args = ap.parse_args()
     old_cls = load_baseline(args.baseline) if args.baseline else None
     all_cases = cases()
+    if args.self_noise:
+        self_noise(old_cls or PlanarSimulator, all_cases)
+        return
     for _, scene, cmd in all_cases[:2]:  # warm-up: compile / load the kernels
         run(PlanarSimulator, scene, cmd)
         if old_cls:
