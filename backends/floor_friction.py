@@ -50,14 +50,7 @@ def objective_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floo
     return f, g, H
 
 
-# The sums over the samples may be reassociated (and multiply-adds fused): the compiler then
-# vectorises them. That changes their rounding only, far below what the model resolves (a
-# push's rotation moves by up to 1e-2 deg under a 1e-15 m change of its start: the solver's
-# tolerances, bench/planar_speed.py).
-_SUMS = {"reassoc", "contract"}
-
-
-@njit(cache=True, fastmath=_SUMS)
+@njit(cache=True)
 def _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H):
     """`objective_kernel` into preallocated g and H (the Newton loop's hot path): the sums
     over the samples run in scalars, the slip norm's Hessian with one division."""
@@ -124,7 +117,7 @@ def _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor
     return f
 
 
-@njit(cache=True, fastmath=_SUMS)
+@njit(cache=True)
 def value_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor):
     """The value of `objective_kernel` alone (line search)."""
     f = 0.0
