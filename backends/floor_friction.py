@@ -19,8 +19,10 @@ each step, their own object-floor friction off (docs/physics.md).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import shapely
@@ -44,37 +46,62 @@ def objective_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floo
     """
     g = np.zeros(3)
     H = np.zeros((3, 3))
+    f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
+    return f, g, H
+
+
+@njit(cache=True)
+def _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H):
+    """`objective_kernel` into preallocated g and H (the Newton loop's hot path): the sums
+    over the samples run in scalars, the slip norm's Hessian with one division."""
     f = 0.0
     for i in range(3):
         dv = xi[i] - xi_hat[i]
         f += 0.5 * M[i] * dv * dv
         g[i] = M[i] * dv
+        for m in range(3):
+            H[i, m] = 0.0
         H[i, i] = M[i]
     e2 = eps * eps
     if floor:
+        x0, x1, x2 = xi[0], xi[1], xi[2]
+        acc = g0 = g1 = g2 = 0.0
+        hxx = hyy = hxy = hxw = hyw = hww = 0.0
         for j in range(w.shape[0]):
-            gx = mx * (xi[0] - xi[2] * dy[j])
-            gy = my * (xi[1] + xi[2] * dx[j])
-            s = math.sqrt(gx * gx + gy * gy + e2)
-            f += dt * w[j] * s
+            djx, djy = dx[j], dy[j]
+            gx = mx * (x0 - x2 * djy)
+            gy = my * (x1 + x2 * djx)
+            s2 = gx * gx + gy * gy + e2
+            s = math.sqrt(s2)
+            acc += w[j] * s
             ws = dt * w[j] / s
+            q = ws / s2
             ax = ws * gx * mx
             ay = ws * gy * my
-            g[0] += ax
-            g[1] += ay
-            g[2] += ay * dx[j] - ax * dy[j]
-            s2 = s * s
-            exx = ws * (gy * gy + e2) / s2
-            eyy = ws * (gx * gx + e2) / s2
-            exy = -ws * gx * gy / s2
-            b2x = -mx * dy[j]
-            b2y = my * dx[j]
-            H[0, 0] += mx * mx * exx
-            H[1, 1] += my * my * eyy
-            H[0, 1] += mx * my * exy
-            H[0, 2] += mx * (exx * b2x + exy * b2y)
-            H[1, 2] += my * (exy * b2x + eyy * b2y)
-            H[2, 2] += b2x * b2x * exx + 2.0 * b2x * b2y * exy + b2y * b2y * eyy
+            g0 += ax
+            g1 += ay
+            g2 += ay * djx - ax * djy
+            exx = q * (gy * gy + e2)
+            eyy = q * (gx * gx + e2)
+            exy = -q * gx * gy
+            b2x = -mx * djy
+            b2y = my * djx
+            hxx += exx
+            hyy += eyy
+            hxy += exy
+            hxw += exx * b2x + exy * b2y
+            hyw += exy * b2x + eyy * b2y
+            hww += b2x * b2x * exx + 2.0 * b2x * b2y * exy + b2y * b2y * eyy
+        f += dt * acc
+        g[0] += g0
+        g[1] += g1
+        g[2] += g2
+        H[0, 0] += mx * mx * hxx
+        H[1, 1] += my * my * hyy
+        H[0, 1] += mx * my * hxy
+        H[0, 2] += mx * hxw
+        H[1, 2] += my * hyw
+        H[2, 2] += hww
         H[1, 0] = H[0, 1]
         H[2, 0] = H[0, 2]
         H[2, 1] = H[1, 2]
@@ -87,7 +114,7 @@ def objective_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floo
             g[i] += k * r / s * tau[i]
             for m in range(3):
                 H[i, m] += c * tau[i] * tau[m]
-    return f, g, H
+    return f
 
 
 @njit(cache=True)
@@ -112,12 +139,32 @@ def value_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor):
 
 
 @njit(cache=True)
+def _solve_spd3(H, r, out):
+    """out = H^-1 r for a symmetric positive definite 3x3 H (LDL^T, no pivoting needed)."""
+    d0 = H[0, 0]
+    l10 = H[0, 1] / d0
+    l20 = H[0, 2] / d0
+    d1 = H[1, 1] - l10 * H[0, 1]
+    l21 = (H[1, 2] - l20 * H[0, 1]) / d1
+    d2 = H[2, 2] - l20 * H[0, 2] - l21 * l21 * d1
+    y0 = r[0]
+    y1 = r[1] - l10 * y0
+    y2 = r[2] - l20 * y0 - l21 * y1
+    out[2] = y2 / d2
+    out[1] = y1 / d1 - l21 * out[2]
+    out[0] = y0 / d0 - l10 * out[1] - l20 * out[2]
+
+
+@njit(cache=True)
 def minimise_kernel(
     xi0, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, a, b, constrained, tol, itmax
 ):
     """Damped Newton on `objective_kernel`, optionally on the plane a . xi = b (KKT).
 
-    Returns the minimiser and the plane's multiplier (an impulse, N s)."""
+    The objective's Hessian is positive definite (the mass matrix plus convex terms), so the
+    Newton step is two 3x3 LDL^T solves: y = H^-1 g, z = H^-1 a, and on the plane
+    step = -(y - z (a . y) / (a . z)). Returns the minimiser and the plane's multiplier (an
+    impulse, N s)."""
     xi = xi0.copy()
     if constrained:
         den = 0.0
@@ -127,36 +174,41 @@ def minimise_kernel(
             ax += a[i] * xi[i]
         for i in range(3):
             xi[i] += a[i] / M[i] * (b - ax) / den
-    K = np.zeros((4, 4))
-    rhs = np.zeros(4)
+    g = np.zeros(3)
+    H = np.zeros((3, 3))
+    y = np.zeros(3)
+    z = np.zeros(3)
+    step = np.zeros(3)
+    trial = np.zeros(3)
     for _ in range(itmax):
-        f, g, H = objective_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor)
+        f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
+        _solve_spd3(H, g, y)
         if constrained:
-            K[:3, :3] = H
+            _solve_spd3(H, a, z)
+            ratio = (a[0] * y[0] + a[1] * y[1] + a[2] * y[2]) / (
+                a[0] * z[0] + a[1] * z[1] + a[2] * z[2]
+            )
             for i in range(3):
-                K[i, 3] = a[i]
-                K[3, i] = a[i]
-                rhs[i] = -g[i]
-            K[3, 3] = 0.0
-            rhs[3] = 0.0
-            step = np.linalg.solve(K, rhs)[:3]
+                step[i] = -(y[i] - z[i] * ratio)
         else:
-            step = np.linalg.solve(H, -g)
+            for i in range(3):
+                step[i] = -y[i]
         dec = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2])
         if dec < tol:
             break
         t = 1.0
         while t > 1e-12:
-            f1 = value_kernel(
-                xi + t * step, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor
-            )
+            for i in range(3):
+                trial[i] = xi[i] + t * step[i]
+            f1 = value_kernel(trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor)
             if f1 <= f - 0.25 * t * dec:
                 break
             t *= 0.5
-        xi = xi + t * step
+        for i in range(3):
+            xi[i] = xi[i] + t * step[i]
     lam = 0.0
     if constrained:
-        g = objective_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor)[1]
+        _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
         lam = (g[0] * a[0] + g[1] * a[1] + g[2] * a[2]) / (a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
     return xi, lam
 
@@ -256,6 +308,25 @@ def _winkler_kernel(dx, dy, a, W, cx, cy, coef):
     return out
 
 
+@njit(cache=True)
+def pressure_kernel(dx, dy, a, W, wm, cx, cy):
+    """Normal force of each sample for a centre of pressure (cx, cy): one 3x3 solve inside
+    the kern, where no sample is clipped; the tensionless problem beyond it."""
+    rhs = np.empty(3)
+    rhs[0], rhs[1], rhs[2] = W, W * cx, W * cy
+    coef = np.linalg.solve(wm, rhs)
+    n = dx.shape[0]
+    out = np.empty(n)
+    p_min = np.inf
+    for k in range(n):
+        p = coef[0] + (dx[k] * coef[1] + dy[k] * coef[2])
+        out[k] = p * a[k]
+        p_min = min(p_min, p)
+    if p_min >= 0.0:
+        return out
+    return _winkler_kernel(dx, dy, a, W, cx, cy, coef)
+
+
 class WinklerPressure:
     """Linear, tensionless pressure over the area samples with a given centre of pressure.
 
@@ -276,12 +347,23 @@ class WinklerPressure:
 
     def forces(self, c: np.ndarray) -> np.ndarray:
         """Normal force of each sample (N) for a centre of pressure at c (offset from the CoM)."""
-        rhs = self.W * np.array([1.0, c[0], c[1]])
-        coef = np.linalg.solve(self._m, rhs)
-        p = coef[0] + self.d @ coef[1:]
-        if p.min() >= 0.0:
-            return p * self.a
-        return _winkler_kernel(self._dx, self._dy, self.a, self.W, float(c[0]), float(c[1]), coef)
+        return pressure_kernel(
+            self._dx, self._dy, self.a, self.W, self._m, float(c[0]), float(c[1])
+        )
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_samples(outline: tuple, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    return footprint_samples(np.array(outline, dtype=float), n_target)
+
+
+def samples_of(outline_m: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    """`footprint_samples`, kept per outline: an episode rebuilds its scene for every push
+    (re-centring), and the polygon clipping was most of a planar build. Copies: the caller
+    owns them."""
+    key = tuple(tuple(float(v) for v in row) for row in np.asarray(outline_m, dtype=float))
+    pts, area = _cached_samples(key, int(n_target))
+    return pts.copy(), area.copy()
 
 
 def half_planes(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -293,11 +375,148 @@ def half_planes(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n, np.einsum("ij,ij->i", n, hull)
 
 
+class FrictionGeometry(NamedTuple):
+    """What the compiled kernels know of one object on its floor (read-only, SI units).
+
+    Offsets and the hulls are from the CoM in the object frame; `wm` is the samples' area
+    moment matrix of the Winkler solve inside the kern."""
+
+    M: np.ndarray  # (m, m, I_zz)
+    mu_x: float
+    mu_y: float
+    m: float
+    h_com: float
+    z_push: float
+    dx: np.ndarray  # sample offsets, object frame
+    dy: np.ndarray
+    r: np.ndarray  # their distances from the CoM
+    area: np.ndarray
+    W: float  # weight (N)
+    wm: np.ndarray
+    hull_n: np.ndarray  # support polygon: inside is n . c <= o
+    hull_o: np.ndarray
+    sample_hull_n: np.ndarray
+    sample_hull_o: np.ndarray
+    eps: float  # FrictionSettings, see there
+    tol: float
+    itmax: int
+    rest_snap: float
+
+
+# Friction state vector `fs` (float64): the pressure centre (object frame, from the CoM), the
+# tipped flag, the holding force and torque at the current pressure, the yaw the world-axis
+# sample offsets were last computed for (NaN: never).
+COP_X, COP_Y, TIPPED, F_HOLD, TAU_HOLD, YAW_CACHED = range(6)
+FS_SIZE = 6
+
+
+@njit(cache=True)
+def offsets_kernel(geo, fs, yaw, dxw, dyw):
+    """The samples' offsets from the CoM in world axes, into (dxw, dyw); recomputed only when
+    the yaw changed (an object at rest keeps them)."""
+    if yaw != fs[YAW_CACHED]:
+        c, s = math.cos(yaw), math.sin(yaw)
+        for k in range(geo.dx.shape[0]):
+            dxw[k] = c * geo.dx[k] - s * geo.dy[k]
+            dyw[k] = s * geo.dx[k] + c * geo.dy[k]
+        fs[YAW_CACHED] = yaw
+
+
+@njit(cache=True)
+def _update_holding(geo, fs, normal):
+    """Friction force and torque the floor can surely supply at the current pressure."""
+    mu_min = min(geo.mu_x, geo.mu_y)
+    tot = 0.0
+    mom = 0.0
+    for k in range(normal.shape[0]):
+        tot += normal[k]
+        mom += normal[k] * geo.r[k]
+    fs[F_HOLD] = max(mu_min * tot, 1e-300)
+    fs[TAU_HOLD] = max(mu_min * mom, 1e-300)
+
+
+@njit(cache=True)
+def set_cop_kernel(geo, fs, normal, cx, cy):
+    """Pressure (into `normal`) for a centre of pressure c (object frame, from the CoM);
+    TIPPED when c leaves the convex hull of the footprint. (Between the samples' hull and the
+    footprint's the pressure is as close to the edge as the samples reach.)"""
+    for i in range(geo.hull_o.shape[0]):
+        if geo.hull_n[i, 0] * cx + geo.hull_n[i, 1] * cy - geo.hull_o[i] > 0.0:
+            fs[TIPPED] = 1.0
+    k = 1.0
+    while k > 0:
+        worst = -np.inf
+        for i in range(geo.sample_hull_o.shape[0]):
+            v = geo.sample_hull_n[i, 0] * (k * cx) + geo.sample_hull_n[i, 1] * (k * cy)
+            worst = max(worst, v - geo.sample_hull_o[i])
+        if worst <= -1e-5:
+            break
+        k *= 0.95
+    cx, cy = k * cx, k * cy
+    # a 2 um move of the pressure centre changes nothing that matters: keep the pressure
+    moved = math.hypot(cx - fs[COP_X], cy - fs[COP_Y]) > 2e-6
+    nonzero = cx != 0.0 or cy != 0.0
+    released = not nonzero and (fs[COP_X] != 0.0 or fs[COP_Y] != 0.0)  # the weight alone
+    if moved or released or (fs[TIPPED] != 0.0 and nonzero):
+        normal[:] = pressure_kernel(geo.dx, geo.dy, geo.area, geo.W, geo.wm, cx, cy)
+        fs[COP_X], fs[COP_Y] = cx, cy
+        _update_holding(geo, fs, normal)
+
+
+@njit(cache=True)
+def free_solve_kernel(geo, normal, xi_hat, dxw, dyw, dt):
+    """End-of-step twist under the floor's friction alone; exactly zero when the friction
+    can hold the object (compared on the exact, unsmoothed objective)."""
+    zero = np.zeros(3)
+    if xi_hat[0] == 0.0 and xi_hat[1] == 0.0 and xi_hat[2] == 0.0:
+        return zero
+    mx, my = geo.mu_x, geo.mu_y
+    sol, _ = minimise_kernel(
+        xi_hat, xi_hat, geo.M, normal, dxw, dyw, mx, my, dt, geo.eps, 0.0, zero, 0.0, True,
+        zero, 0.0, False, geo.tol, geo.itmax,
+    )  # fmt: skip
+    snap = geo.rest_snap
+    if abs(sol[0]) < snap and abs(sol[1]) < snap and abs(sol[2]) < 1e-4:
+        f0 = value_kernel(zero, xi_hat, geo.M, normal, dxw, dyw, mx, my, dt, 0.0, 0.0, zero,
+                          0.0, True)  # fmt: skip
+        f1 = value_kernel(sol, xi_hat, geo.M, normal, dxw, dyw, mx, my, dt, 0.0, 0.0, zero,
+                          0.0, True)  # fmt: skip
+        if f0 <= f1:
+            return zero
+    return sol
+
+
+@njit(cache=True)
+def impulse_kernel(geo, fs, normal, dxw, dyw, xi_hat, yaw, dt, pushed):
+    """`FootprintFriction.impulse`, compiled: the friction impulse, the pressure updated."""
+    M = geo.M
+    need_x, need_y, need_w = M[0] * xi_hat[0] / dt, M[1] * xi_hat[1] / dt, M[2] * xi_hat[2] / dt
+    imp = np.empty(3)
+    if (abs(need_x) + abs(need_y)) / fs[F_HOLD] + abs(need_w) / fs[TAU_HOLD] < 0.9:
+        # inside the limit surface (its octahedron of pure-force and pure-torque vertices):
+        # static friction holds the object, no solve needed
+        for i in range(3):
+            imp[i] = -M[i] * xi_hat[i]
+    else:
+        offsets_kernel(geo, fs, yaw, dxw, dyw)
+        sol = free_solve_kernel(geo, normal, xi_hat, dxw, dyw, dt)
+        for i in range(3):
+            imp[i] = M[i] * (sol[i] - xi_hat[i])
+    z = geo.z_push if pushed else geo.h_com
+    den = dt * geo.m * GRAVITY_M_S2
+    cwx, cwy = -z * imp[0] / den, -z * imp[1] / den
+    c, s = math.cos(yaw), math.sin(yaw)
+    set_cop_kernel(geo, fs, normal, c * cwx + s * cwy, -s * cwx + c * cwy)
+    return imp
+
+
 class FootprintFriction:
     """The floor's friction on one object: area samples, Winkler pressure, the implicit solve.
 
     Frames: samples and the centre of pressure (`cop`, an offset from the CoM) live in the
     object frame; twists xi = (v_x, v_y, omega) of the CoM and impulses in the world frame.
+    The state (`fs`, `normal`, the world-axis offsets) lives in arrays that the compiled
+    kernels update in place, so that a backend can run whole steps without Python.
     """
 
     def __init__(
@@ -316,7 +535,7 @@ class FootprintFriction:
         outline = np.asarray(obj.outline_m, dtype=float)
         self.h_com = obj.height_m / 2.0
         self.z_push = pusher_contact_height_m(pusher, obj.height_m)
-        pts, area = footprint_samples(outline, self.set.samples)
+        pts, area = samples_of(outline, self.set.samples)
         self.d_obj = pts - self.com  # sample offsets from the CoM, object frame
         self.pressure = WinklerPressure(self.d_obj, area, self.m * GRAVITY_M_S2)
         self.sample_hull_n, self.sample_hull_o = half_planes(
@@ -324,48 +543,43 @@ class FootprintFriction:
         )
         hull = np.asarray(shapely.Polygon(outline).convex_hull.exterior.coords)[:-1]
         self.hull_n, self.hull_o = half_planes(hull - self.com)  # support polygon, from CoM
-        self.cop = np.zeros(2)
-        self.normal = self.pressure.forces(self.cop)
-        self.tipped = False
-        self._yaw_cached: float | None = None
-        self._offsets = (EMPTY, EMPTY)
-        self._update_holding()
+        s = self.set
+        c = np.ascontiguousarray
+        self.geo = FrictionGeometry(
+            M=self.M, mu_x=float(mu_x), mu_y=float(mu_y), m=float(self.m),
+            h_com=float(self.h_com), z_push=float(self.z_push),
+            dx=c(self.d_obj[:, 0]), dy=c(self.d_obj[:, 1]),
+            r=np.hypot(self.d_obj[:, 0], self.d_obj[:, 1]), area=c(area, dtype=float),
+            W=float(self.pressure.W), wm=c(self.pressure._m), hull_n=c(self.hull_n),
+            hull_o=c(self.hull_o), sample_hull_n=c(self.sample_hull_n),
+            sample_hull_o=c(self.sample_hull_o), eps=float(s.smoothing_m_s),
+            tol=float(s.newton_tol), itmax=int(s.max_newton), rest_snap=float(s.rest_snap_m_s),
+        )  # fmt: skip
+        self.fs = np.zeros(FS_SIZE)
+        self.fs[YAW_CACHED] = np.nan
+        self.normal = self.pressure.forces(np.zeros(2))
+        n = self.normal.shape[0]
+        self.dxw, self.dyw = np.zeros(n), np.zeros(n)  # offsets in world axes (offsets_world)
+        _update_holding(self.geo, self.fs, self.normal)
 
-    def _update_holding(self) -> None:
-        """Friction force and torque the floor can surely supply at the current pressure."""
-        mu_min = float(self.mu.min())
-        self._f_hold = max(mu_min * float(self.normal.sum()), 1e-300)
-        r = np.hypot(self.d_obj[:, 0], self.d_obj[:, 1])
-        self._tau_hold = max(mu_min * float(self.normal @ r), 1e-300)
+    @property
+    def cop(self) -> np.ndarray:
+        """Centre of pressure, object frame, from the CoM (a view of the state)."""
+        return self.fs[COP_X : COP_Y + 1]
+
+    @property
+    def tipped(self) -> bool:
+        return bool(self.fs[TIPPED])
 
     def offsets_world(self, yaw: float) -> tuple[np.ndarray, np.ndarray]:
         """The samples' offsets from the CoM in world axes (x and y arrays)."""
-        if yaw != self._yaw_cached:
-            c, s = math.cos(yaw), math.sin(yaw)
-            dx = c * self.d_obj[:, 0] - s * self.d_obj[:, 1]
-            dy = s * self.d_obj[:, 0] + c * self.d_obj[:, 1]
-            self._offsets, self._yaw_cached = (dx, dy), yaw
-        return self._offsets
+        offsets_kernel(self.geo, self.fs, float(yaw), self.dxw, self.dyw)
+        return self.dxw, self.dyw
 
     def set_cop(self, c_obj: np.ndarray) -> None:
-        """Pressure for a centre of pressure c (object frame, from the CoM); `tipped` when c
-        leaves the convex hull of the footprint. (Between the samples' hull and the
-        footprint's the pressure is as close to the edge as the samples reach.)"""
-        if float((self.hull_n @ c_obj - self.hull_o).max()) > 0.0:
-            self.tipped = True
-        k = 1.0
-        while k > 0 and float((self.sample_hull_n @ (k * c_obj) - self.sample_hull_o).max()) > (
-            -1e-5
-        ):
-            k *= 0.95
-        c_obj = k * c_obj
-        # a 2 um move of the pressure centre changes nothing that matters: keep the pressure
-        moved = float(np.hypot(*(c_obj - self.cop))) > 2e-6
-        released = not c_obj.any() and self.cop.any()  # back to the weight alone, exactly
-        if moved or released or (self.tipped and c_obj.any()):
-            self.normal = self.pressure.forces(c_obj)
-            self.cop = c_obj
-            self._update_holding()
+        """Pressure for a centre of pressure c (object frame, from the CoM); see
+        `set_cop_kernel`."""
+        set_cop_kernel(self.geo, self.fs, self.normal, float(c_obj[0]), float(c_obj[1]))
 
     def objective(self, xi, xi_hat, w, dx, dy, dt, fr=None, eps=None) -> float:
         """Value of a step's convex objective (`objective_kernel`); `eps` overrides the
@@ -391,19 +605,9 @@ class FootprintFriction:
         )  # fmt: skip
 
     def free_solve(self, xi_hat: np.ndarray, dx, dy, dt: float) -> np.ndarray:
-        """End-of-step twist under the floor's friction alone; exactly zero when the friction
-        can hold the object (compared on the exact, unsmoothed objective)."""
-        if not xi_hat.any():
-            return np.zeros(3)
-        w = self.normal
-        sol, _ = self.minimise(xi_hat, xi_hat, w, dx, dy, dt)
-        if np.all(np.abs(sol[:2]) < self.set.rest_snap_m_s) and abs(sol[2]) < 1e-4:
-            zero = np.zeros(3)
-            if self.objective(zero, xi_hat, w, dx, dy, dt, None, 0.0) <= self.objective(
-                sol, xi_hat, w, dx, dy, dt, None, 0.0
-            ):
-                return zero
-        return sol
+        """End-of-step twist under the floor's friction alone (`free_solve_kernel`)."""
+        xi_hat = np.asarray(xi_hat, dtype=np.float64)
+        return free_solve_kernel(self.geo, self.normal, xi_hat, dx, dy, dt)
 
     def impulse(self, xi_hat: np.ndarray, yaw: float, dt: float, pushed: bool) -> np.ndarray:
         """The floor's friction impulse (N s, and N m s about z) over one step of an engine,
@@ -411,18 +615,8 @@ class FootprintFriction:
         follows for the next step: c = -z F_f / (m g), with z the pusher's contact height
         while the pusher holds the object against the friction (it then balances F_f), the
         CoM's height while the object slides free (inertia balances F_f)."""
-        xi_hat = np.asarray(xi_hat, dtype=float)
-        need = self.M * xi_hat / dt  # the force and torque that would stop it within the step
-        if (abs(need[0]) + abs(need[1])) / self._f_hold + abs(need[2]) / self._tau_hold < 0.9:
-            # inside the limit surface (its octahedron of pure-force and pure-torque vertices):
-            # static friction holds the object, no solve needed
-            imp = -self.M * xi_hat
-        else:
-            dx, dy = self.offsets_world(yaw)
-            sol = self.free_solve(xi_hat, dx, dy, dt)
-            imp = self.M * (sol - xi_hat)
-        z = self.z_push if pushed else self.h_com
-        c_w = -z * imp[:2] / (dt * self.m * GRAVITY_M_S2)
-        c, s = math.cos(yaw), math.sin(yaw)
-        self.set_cop(np.array([c * c_w[0] + s * c_w[1], -s * c_w[0] + c * c_w[1]]))
-        return imp
+        xi_hat = np.asarray(xi_hat, dtype=np.float64)
+        return impulse_kernel(
+            self.geo, self.fs, self.normal, self.dxw, self.dyw, xi_hat, float(yaw), float(dt),
+            bool(pushed),
+        )  # fmt: skip

@@ -25,18 +25,30 @@ model"), so that the 3-D engines can be checked against it:
   sustained push are solved together; the pressure follows the sustained forces only.
 - **The camera** is the exact ray-cast of the prism (`comexp.perception.render_prism_depth`).
 
-Vectorised NumPy over the area samples; a handful of 3-variable Newton iterations per step.
+One compiled call (Numba) runs many steps: contact, impact, the friction solves with the
+pusher constraint, the pressure fixed point, integration and the penetration projection, on
+preallocated state arrays; a handful of 3-variable Newton iterations per step.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
+from comexp.backends.floor_friction import (
+    COP_X,
+    COP_Y,
+    TIPPED,
+    FootprintFriction,
+    FrictionSettings,
+    free_solve_kernel,
+    minimise_kernel,
+    offsets_kernel,
+    set_cop_kernel,
+)
 from comexp.perception import render_prism_depth
 from comexp.scene import (
     GRAVITY_M_S2,
@@ -51,17 +63,27 @@ from comexp.simulator import Simulator
 _PARK_XY_M = (0.0, 0.5)  # outside the floor and the camera's view
 
 
-@dataclass
-class _Contact:
-    """Pusher-object contact of one step, world frame: normal n points into the object."""
+class PlanarGeometry(NamedTuple):
+    """What the compiled step knows of the object beyond its floor friction (SI units)."""
 
-    n: np.ndarray
-    point_rel: np.ndarray  # contact point minus the CoM
-    gap_m: float  # signed, positive when apart
+    outline: np.ndarray  # object frame
+    com: np.ndarray  # object frame
+    r_bound: float  # reach of the outline from the CoM
+    radius: float  # the pusher's
+    ixx: float  # about the CoM's horizontal axis (impact tipping)
+    poly: np.ndarray  # scratch: the outline in world coordinates
+
+
+# Model state vector `ms` (float64): CoM position, yaw, CoM twist (v_x, v_y, omega), the
+# pusher's normal impulse of the last sustained solve (the next step's first guess), the
+# pusher's normal impulse of the last step (N s), and whether an impact tipped the object.
+G_X, G_Y, YAW, XI_X, XI_Y, XI_W, LAM_PREV, IMPULSE, IMPACT_TIPPED = range(9)
+MS_SIZE = 9
+TRACE_COLS = 7  # per step: CoM x, y, yaw, twist (3), tipped
 
 
 @njit(cache=True)
-def _closest_on_polygon(q: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, float, bool]:
+def _closest_on_polygon(qx, qy, poly):
     """Closest boundary point of a polygon to q, its distance, and whether q is inside."""
     n = poly.shape[0]
     best = np.inf
@@ -71,19 +93,198 @@ def _closest_on_polygon(q: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, fl
         ax, ay = poly[i, 0], poly[i, 1]
         cx, cy = poly[(i + 1) % n, 0], poly[(i + 1) % n, 1]
         ex, ey = cx - ax, cy - ay
-        t = ((q[0] - ax) * ex + (q[1] - ay) * ey) / (ex * ex + ey * ey)
+        t = ((qx - ax) * ex + (qy - ay) * ey) / (ex * ex + ey * ey)
         t = min(1.0, max(0.0, t))
         px, py = ax + t * ex, ay + t * ey
-        d = math.hypot(px - q[0], py - q[1])
+        d = math.hypot(px - qx, py - qy)
         if d < best:
             best, bx, by = d, px, py
-        if (ay > q[1]) != (cy > q[1]) and q[0] < ax + (q[1] - ay) * ex / ey:
+        if (ay > qy) != (cy > qy) and qx < ax + (qy - ay) * ex / ey:
             inside = not inside  # (the edge crosses q's row, so ey != 0 here)
-    return np.array([bx, by]), best, inside
+    return bx, by, best, inside
+
+
+@njit(cache=True)
+def _contact(pg, ms, qx, qy):
+    """Pusher-object contact at pusher centre q, world frame: (found, normal pointing into
+    the object, contact point minus the CoM, signed gap positive when apart)."""
+    c, s = math.cos(ms[YAW]), math.sin(ms[YAW])
+    com, out, poly = pg.com, pg.outline, pg.poly
+    ox = ms[G_X] - (c * com[0] - s * com[1])
+    oy = ms[G_Y] - (s * com[0] + c * com[1])
+    for i in range(out.shape[0]):
+        poly[i, 0] = out[i, 0] * c - out[i, 1] * s + ox
+        poly[i, 1] = out[i, 0] * s + out[i, 1] * c + oy
+    px, py, dist, inside = _closest_on_polygon(qx, qy, poly)
+    if dist < 1e-12:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    if inside:
+        nx, ny, gap = (qx - px) / dist, (qy - py) / dist, -dist - pg.radius
+    else:
+        nx, ny, gap = (px - qx) / dist, (py - qy) / dist, dist - pg.radius
+    return True, nx, ny, px - ms[G_X], py - ms[G_Y], gap
+
+
+@njit(cache=True)
+def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, mu_p, lam0):
+    """The step's solve with the pusher's unilateral plastic contact and its friction: the
+    free solve first; if it would leave the pusher inside, the contact plane as a constraint,
+    with a fixed point on the normal impulse that scales the tangential friction.
+    Returns (xi, normal impulse, tangential impulse)."""
+    nx, ny, rx, ry, gap = con
+    a = np.array([nx, ny, rx * ny - ry * nx])
+    b = (vqx * nx + vqy * ny) - max(gap, 0.0) / dt
+    tx, ty = -ny, nx
+    tau = np.array([tx, ty, rx * ty - ry * tx])
+    r0 = vqx * tx + vqy * ty
+    M, mx, my, eps, tol, itmax = geo.M, geo.mu_x, geo.mu_y, geo.eps, geo.tol, geo.itmax
+    xi, _ = minimise_kernel(xi_hat, xi_hat, M, normal, dxw, dyw, mx, my, dt, eps, 0.0, tau,
+                            0.0, floor, a, b, False, tol, itmax)  # fmt: skip
+    if a[0] * xi[0] + a[1] * xi[1] + a[2] * xi[2] >= b:
+        return xi, 0.0, 0.0
+    lam = max(lam0, 0.0)
+    for _ in range(8):  # fixed point on the normal impulse of the tangential friction
+        k = lam * mu_p if mu_p > 0 and lam > 0 else 0.0
+        xi, lam_new = minimise_kernel(xi, xi_hat, M, normal, dxw, dyw, mx, my, dt, eps, k,
+                                      tau, r0, floor, a, b, True, tol, itmax)  # fmt: skip
+        lam_new = max(lam_new, 0.0)
+        if abs(lam_new - lam) <= 1e-9 + 1e-6 * lam_new:
+            lam = lam_new
+            break
+        lam = lam_new
+    t_imp = 0.0
+    if mu_p > 0 and lam > 0:
+        r = tau[0] * xi[0] + tau[1] * xi[1] + tau[2] * xi[2] - r0
+        t_imp = -lam * mu_p * r / math.sqrt(r * r + eps * eps)
+    return xi, lam, t_imp
+
+
+@njit(cache=True)
+def _impact_tips(geo, pg, yaw, lam, t_imp, nx, ny):
+    """An impact's impulsive moment about the horizontal axes tips the object when the
+    kinetic energy it gives a rotation about the support edge beats the potential barrier
+    of lifting the CoM over that edge."""
+    px, py = lam * nx + t_imp * -ny, lam * ny + t_imp * nx
+    arm = geo.z_push - geo.h_com
+    p_abs = math.hypot(px, py)
+    if abs(arm) < 1e-12 or p_abs == 0.0:
+        return False
+    c, s = math.cos(yaw), math.sin(yaw)
+    sign = math.copysign(1.0, arm)
+    ux, uy = px / p_abs, py / p_abs
+    dirx, diry = (c * ux + s * uy) * sign, (-s * ux + c * uy) * sign
+    dist = np.inf
+    for i in range(geo.hull_o.shape[0]):
+        along = geo.hull_n[i, 0] * dirx + geo.hull_n[i, 1] * diry
+        dist = min(dist, geo.hull_o[i] / max(along, 1e-9))
+    i_edge = pg.ixx + geo.m * (dist**2 + geo.h_com**2)
+    ang = abs(arm) * p_abs
+    energy = ang * ang / (2.0 * i_edge)
+    barrier = geo.m * GRAVITY_M_S2 * (math.hypot(dist, geo.h_com) - geo.h_com)
+    return energy > barrier
+
+
+@njit(cache=True)
+def _step(geo, fs, normal, dxw, dyw, pg, ms, q0x, q0y, q1x, q1y, dt, mu_p):
+    """Advance one step; the pusher moves from q0 to q1 (world, its centre) within it."""
+    vqx, vqy = (q1x - q0x) / dt, (q1y - q0y) / dt
+    reach = math.sqrt(vqx * vqx + vqy * vqy) * dt + abs(ms[XI_W]) * pg.r_bound * dt
+    reach += math.sqrt(ms[XI_X] ** 2 + ms[XI_Y] ** 2) * dt + 1e-5
+    far = math.hypot(q0x - ms[G_X], q0y - ms[G_Y]) > pg.r_bound + pg.radius + reach
+    if far and ms[XI_X] == 0.0 and ms[XI_Y] == 0.0 and ms[XI_W] == 0.0:
+        if fs[COP_X] != 0.0 or fs[COP_Y] != 0.0:  # no force acts: the weight's pressure alone
+            set_cop_kernel(geo, fs, normal, 0.0, 0.0)
+        return  # at rest, pusher away: friction holds it exactly (no creep)
+    active = False
+    con = (0.0, 0.0, 0.0, 0.0, 0.0)
+    if not far:
+        found, nx, ny, rx, ry, gap = _contact(pg, ms, q0x, q0y)
+        con = (nx, ny, rx, ry, gap)
+        active = found and gap < reach
+    nx, ny, rx, ry, gap = con
+    yaw = ms[YAW]
+    c, s = math.cos(yaw), math.sin(yaw)
+    offsets_kernel(geo, fs, yaw, dxw, dyw)
+    xi = ms[XI_X : XI_W + 1].copy()
+    ms[IMPULSE] = 0.0
+    if active:
+        # would the pusher penetrate within the step at the current velocities?
+        vcx, vcy = xi[0] - xi[2] * ry, xi[1] + xi[2] * rx
+        if (vcx - vqx) * nx + (vcy - vqy) * ny < -max(gap, 0.0) / dt:
+            # 1) impact: plastic, frictionless floor (instantaneous)
+            xi, lam1, t1 = _solve_with_pusher(
+                geo, normal, False, xi, dxw, dyw, dt, con, vqx, vqy, mu_p, 0.0
+            )
+            if lam1 > 0 and _impact_tips(geo, pg, yaw, lam1, t1, nx, ny):
+                ms[IMPACT_TIPPED] = 1.0
+            ms[IMPULSE] += lam1
+    # 2) the step's floor friction (and the sustained push), with the pressure fixed by the
+    #    sustained forces: solved, the pressure updated from its forces, solved once more
+    #    when the centre of pressure moved
+    xi_hat = xi
+    sol = xi
+    lam2 = 0.0
+    den = geo.m * GRAVITY_M_S2
+    arm = geo.z_push - geo.h_com
+    for it in range(2):
+        if active:
+            sol, lam2, t2 = _solve_with_pusher(
+                geo, normal, True, xi_hat, dxw, dyw, dt, con, vqx, vqy, mu_p, ms[LAM_PREV]
+            )
+        else:
+            sol = free_solve_kernel(geo, normal, xi_hat, dxw, dyw, dt)
+            lam2 = t2 = 0.0
+        # forces of this step (N): floor friction from the momentum balance
+        ix, iy = geo.M[0] * (sol[0] - xi_hat[0]), geo.M[1] * (sol[1] - xi_hat[1])
+        pix = piy = 0.0
+        if active and lam2 > 0:
+            pix, piy = lam2 * nx + t2 * -ny, lam2 * ny + t2 * nx
+        ffx, ffy = (ix - pix) / dt, (iy - piy) / dt
+        fpx, fpy = pix / dt, piy / dt
+        cwx = (arm * fpx - geo.h_com * ffx) / den
+        cwy = (arm * fpy - geo.h_com * ffy) / den
+        cox, coy = c * cwx + s * cwy, -s * cwx + c * cwy
+        moved = math.hypot(cox - fs[COP_X], coy - fs[COP_Y])
+        set_cop_kernel(geo, fs, normal, cox, coy)
+        if moved < 1e-4 or it == 1:
+            break
+    ms[IMPULSE] += lam2
+    ms[LAM_PREV] = lam2
+    ms[XI_X], ms[XI_Y], ms[XI_W] = sol[0], sol[1], sol[2]
+    ms[G_X] += sol[0] * dt
+    ms[G_Y] += sol[1] * dt
+    ms[YAW] += sol[2] * dt
+    # plastic contact: a penetration left by the linearised constraint is removed by moving
+    # the object (position only, no velocity: no energy is injected)
+    if active:
+        found, nx, ny, rx, ry, gap = _contact(pg, ms, q1x, q1y)
+        if found and gap < 0.0:
+            ms[G_X] += nx * -gap
+            ms[G_Y] += ny * -gap
+
+
+@njit(cache=True)
+def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace):
+    """Steps to each of `targets` in turn from the pusher at `q_start`; whether the pusher
+    pushed in any of them. `trace` (n x TRACE_COLS, or 0 rows: none) gets every step's state."""
+    touched = False
+    qx, qy = q_start[0], q_start[1]
+    for i in range(targets.shape[0]):
+        _step(geo, fs, normal, dxw, dyw, pg, ms, qx, qy, targets[i, 0], targets[i, 1], dt, mu_p)
+        qx, qy = targets[i, 0], targets[i, 1]
+        touched = touched or ms[IMPULSE] > 0.0
+        if trace.shape[0] > 0:
+            for j in range(6):
+                trace[i, j] = ms[j]
+            trace[i, 6] = 1.0 if fs[TIPPED] != 0.0 or ms[IMPACT_TIPPED] != 0.0 else 0.0
+    return touched
 
 
 class PlanarModel:
-    """State and one time step of the planar rigid-body model (SI units, world frame)."""
+    """State and time steps of the planar rigid-body model (SI units, world frame).
+
+    The state lives in arrays (`ms`, and the friction's `fr.fs`, `fr.normal`) that the
+    compiled step updates in place; the attributes below are views of it."""
 
     def __init__(
         self, obj: ObjectSpec, mu_x: float, mu_y: float, settings: FrictionSettings, pusher
@@ -99,17 +300,37 @@ class PlanarModel:
         self.z_push = self.fr.z_push
         self.r_bound = float(np.max(np.hypot(*(self.outline - self.com).T)))  # reach from CoM
         self.radius = pusher.radius_m
-        # state: CoM position, yaw, CoM velocity, yaw rate
-        self.g = np.zeros(2)
-        self.yaw = 0.0
-        self.xi = np.zeros(3)
-        self._impact_tipped = False
-        self.contact_impulse = 0.0  # pusher normal impulse of the last step (N s)
-        self._lam_prev = 0.0
+        self.geo = PlanarGeometry(
+            outline=np.ascontiguousarray(self.outline), com=np.ascontiguousarray(self.com),
+            r_bound=self.r_bound, radius=float(self.radius), ixx=float(obj.ixx_kg_m2),
+            poly=np.zeros_like(self.outline),
+        )  # fmt: skip
+        self.ms = np.zeros(MS_SIZE)
+
+    @property
+    def g(self) -> np.ndarray:
+        return self.ms[G_X : G_Y + 1]
+
+    @property
+    def yaw(self) -> float:
+        return float(self.ms[YAW])
+
+    @property
+    def xi(self) -> np.ndarray:
+        return self.ms[XI_X : XI_W + 1]
+
+    @xi.setter
+    def xi(self, value) -> None:
+        self.ms[XI_X : XI_W + 1] = value
+
+    @property
+    def contact_impulse(self) -> float:
+        """The pusher's normal impulse of the last step (N s)."""
+        return float(self.ms[IMPULSE])
 
     @property
     def tipped(self) -> bool:
-        return self.fr.tipped or self._impact_tipped
+        return self.fr.tipped or bool(self.ms[IMPACT_TIPPED])
 
     # --- frames ------------------------------------------------------------------------
     def rot(self) -> np.ndarray:
@@ -118,135 +339,48 @@ class PlanarModel:
 
     def set_pose(self, x: float, y: float, yaw: float) -> None:
         """Object frame origin at (x, y), yaw; at rest."""
-        self.yaw = yaw
-        self.g = np.array([x, y]) + self.rot() @ self.com
+        self.ms[YAW] = yaw
+        self.ms[G_X : G_Y + 1] = np.array([x, y]) + self.rot() @ self.com
         self.xi = np.zeros(3)
 
     def origin(self) -> np.ndarray:
         return self.g - self.rot() @ self.com
 
-    def _contact(self, q: np.ndarray) -> _Contact | None:
-        R = self.rot()
-        poly = self.outline @ R.T + self.origin()
-        p, dist, inside = _closest_on_polygon(q, poly)
-        if dist < 1e-12:
-            return None
-        n = (p - q) / dist if not inside else (q - p) / dist
-        gap = (-dist if inside else dist) - self.radius
-        return _Contact(n=n, point_rel=p - self.g, gap_m=gap)
-
-    def _solve_with_pusher(self, xi_hat, w, dx, dy, dt, con, v_q, mu_p, lam_guess):
-        """The step's solve with the pusher's unilateral plastic contact and its friction."""
-        a = np.array(
-            [con.n[0], con.n[1], con.point_rel[0] * con.n[1] - con.point_rel[1] * con.n[0]]
-        )
-        b = float(v_q @ con.n) - max(con.gap_m, 0.0) / dt
-        t_dir = np.array([-con.n[1], con.n[0]])
-        tau = np.array(
-            [t_dir[0], t_dir[1], con.point_rel[0] * t_dir[1] - con.point_rel[1] * t_dir[0]]
-        )
-        r0 = float(v_q @ t_dir)
-        xi, _ = self.fr.minimise(xi_hat, xi_hat, w, dx, dy, dt, None)
-        if float(a @ xi) >= b:
-            return xi, 0.0, 0.0
-        lam = max(lam_guess, 0.0)
-        for _ in range(8):  # fixed point on the normal impulse of the tangential friction
-            fr = (lam * mu_p, tau, r0) if mu_p > 0 and lam > 0 else None
-            xi, lam_new = self.fr.minimise(xi, xi_hat, w, dx, dy, dt, fr, a=a, b=b)
-            lam_new = max(lam_new, 0.0)
-            if abs(lam_new - lam) <= 1e-9 + 1e-6 * lam_new:
-                lam = lam_new
-                break
-            lam = lam_new
-        t_imp = 0.0
-        if mu_p > 0 and lam > 0:
-            r = float(tau @ xi) - r0
-            eps = self.set.smoothing_m_s
-            t_imp = -lam * mu_p * r / math.sqrt(r * r + eps * eps)
-        return xi, lam, t_imp
-
-    @staticmethod
-    def _approaching(xi: np.ndarray, con: _Contact, v_q: np.ndarray, dt: float) -> bool:
-        """Would the pusher penetrate within the step at the current velocities?"""
-        r = con.point_rel
-        v_c = np.array([xi[0] - xi[2] * r[1], xi[1] + xi[2] * r[0]])
-        return float((v_c - v_q) @ con.n) < -max(con.gap_m, 0.0) / dt
+    def run(
+        self, q0: np.ndarray, targets: np.ndarray, dt: float, mu_p: float, trace: np.ndarray
+    ) -> bool:
+        """Steps from the pusher at q0 to each target in turn (`_run`)."""
+        fr = self.fr
+        return _run(
+            fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw, self.geo, self.ms,
+            np.asarray(q0, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
+            float(dt), float(mu_p), trace,
+        )  # fmt: skip
 
     def step(self, q0: np.ndarray, q1: np.ndarray, dt: float, mu_p: float) -> None:
         """Advance one step; the pusher moves from q0 to q1 (world, its centre) within it."""
-        v_q = (q1 - q0) / dt
-        reach = float(np.linalg.norm(v_q)) * dt + abs(self.xi[2]) * self.r_bound * dt
-        reach += float(np.linalg.norm(self.xi[:2])) * dt + 1e-5
-        far = float(np.hypot(*(q0 - self.g))) > self.r_bound + self.radius + reach
-        if far and not self.xi.any():
-            if self.fr.cop.any():  # no force acts: the pressure is the weight's alone
-                self.fr.set_cop(np.zeros(2))
-            return  # at rest, pusher away: friction holds it exactly (no creep)
-        con = None if far else self._contact(q0)
-        active = con is not None and con.gap_m < reach
-        R = self.rot()
-        dx, dy = self.fr.offsets_world(self.yaw)
-        xi = self.xi
-        self.contact_impulse = 0.0
-        if active and self._approaching(xi, con, v_q, dt):
-            # 1) impact: plastic, frictionless floor (instantaneous)
-            xi, lam1, t1 = self._solve_with_pusher(xi, None, dx, dy, dt, con, v_q, mu_p, 0.0)
-            if lam1 > 0:
-                self._impact_tip_check(lam1, t1, con, R)
-            self.contact_impulse += lam1
-        # 2) the step's floor friction (and the sustained push), with the pressure fixed by the
-        #    sustained forces: solved, the pressure updated from its forces, solved once more
-        #    when the centre of pressure moved
-        xi_hat = xi
-        for it in range(2):
-            w = self.fr.normal
-            if active:
-                sol, lam2, t2 = self._solve_with_pusher(
-                    xi_hat, w, dx, dy, dt, con, v_q, mu_p, self._lam_prev
-                )
-            else:
-                sol = self.fr.free_solve(xi_hat, dx, dy, dt)
-                lam2 = t2 = 0.0
-            # forces of this step (N): floor friction from the momentum balance
-            imp = self.M * (sol - xi_hat)  # floor + pusher impulses
-            push_imp = np.zeros(2)
-            if active and lam2 > 0:
-                push_imp = lam2 * con.n + t2 * np.array([-con.n[1], con.n[0]])
-            F_f = (imp[:2] - push_imp) / dt
-            F_p = push_imp / dt
-            c_w = ((self.z_push - self.h_com) * F_p - self.h_com * F_f) / (self.m * GRAVITY_M_S2)
-            c_obj = R.T @ c_w
-            moved = float(np.linalg.norm(c_obj - self.fr.cop))
-            self.fr.set_cop(c_obj)
-            if moved < 1e-4 or it == 1:
-                break
-        self.contact_impulse += lam2
-        self._lam_prev = lam2
-        self.xi = sol
-        self.g = self.g + sol[:2] * dt
-        self.yaw = self.yaw + sol[2] * dt
-        # plastic contact: a penetration left by the linearised constraint is removed by
-        # moving the object (position only, no velocity: no energy is injected)
-        con_after = self._contact(q1) if active else None
-        if con_after is not None and con_after.gap_m < 0.0:
-            self.g = self.g + con_after.n * (-con_after.gap_m)
+        self.run(q0, np.asarray(q1, dtype=np.float64)[None, :], dt, mu_p, _NO_TRACE)
 
-    def _impact_tip_check(self, lam: float, t_imp: float, con: _Contact, R: np.ndarray) -> None:
-        """An impact's impulsive moment about the horizontal axes tips the object when the
-        kinetic energy it gives a rotation about the support edge beats the potential barrier
-        of lifting the CoM over that edge."""
-        P = lam * con.n + t_imp * np.array([-con.n[1], con.n[0]])
-        arm = self.z_push - self.h_com
-        if abs(arm) < 1e-12 or float(np.hypot(*P)) == 0.0:
-            return
-        d_dir = R.T @ (P / np.hypot(*P)) * math.copysign(1.0, arm)
-        dist = float(np.min(self.fr.hull_o / np.maximum(self.fr.hull_n @ d_dir, 1e-9)))
-        i_edge = self.obj.ixx_kg_m2 + self.m * (dist**2 + self.h_com**2)
-        L = abs(arm) * float(np.hypot(*P))
-        energy = L * L / (2.0 * i_edge)
-        barrier = self.m * GRAVITY_M_S2 * (math.hypot(dist, self.h_com) - self.h_com)
-        if energy > barrier:
-            self._impact_tipped = True
+
+_NO_TRACE = np.zeros((0, TRACE_COLS))
+
+
+def _object_state(com: np.ndarray, g, yaw: float, xi, tipped: bool) -> ObjectState:
+    """The interface's state of the object frame from the model's CoM state."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s], [s, c]])
+    r = R @ com  # origin -> CoM
+    o = g - r
+    v = xi[:2] - xi[2] * np.array([-r[1], r[0]])
+    tilt = math.radians(90.0) if tipped else 0.0
+    return ObjectState(
+        position_m=(float(o[0]), float(o[1]), 0.0),
+        roll_rad=tilt,
+        pitch_rad=0.0,
+        yaw_rad=float(math.atan2(s, c)),
+        linear_velocity_m_s=(float(v[0]), float(v[1]), 0.0),
+        angular_velocity_rad_s=(0.0, 0.0, float(xi[2])),
+    )
 
 
 class PlanarSimulator(Simulator):
@@ -281,18 +415,7 @@ class PlanarSimulator(Simulator):
     # --- state -----------------------------------------------------------------------------
     def object_state(self) -> ObjectState:
         m = self._require()
-        o = m.origin()
-        r = m.rot() @ m.com  # origin -> CoM
-        v = m.xi[:2] - m.xi[2] * np.array([-r[1], r[0]])
-        tilt = math.radians(90.0) if m.tipped else 0.0
-        return ObjectState(
-            position_m=(float(o[0]), float(o[1]), 0.0),
-            roll_rad=tilt,
-            pitch_rad=0.0,
-            yaw_rad=float(math.atan2(math.sin(m.yaw), math.cos(m.yaw))),
-            linear_velocity_m_s=(float(v[0]), float(v[1]), 0.0),
-            angular_velocity_rad_s=(0.0, 0.0, float(m.xi[2])),
-        )
+        return _object_state(m.com, m.g, m.yaw, m.xi, m.tipped)
 
     def set_object_velocity(self, linear_m_s, angular_rad_s) -> None:
         m = self._require()
@@ -317,13 +440,16 @@ class PlanarSimulator(Simulator):
         m = self._require()
         dt = self.settings.timestep_s
         mu_p = self._scene.obj.mu_pusher
-        touched = False
-        for q1 in targets:
-            m.step(self._q, q1, dt, mu_p)
-            self._q = np.asarray(q1, dtype=float).copy()
-            touched = touched or m.contact_impulse > 0.0
-            if self.trace is not None:
-                self.trace.append(self.object_state())
+        targets = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
+        if self.trace is None:
+            touched = m.run(self._q, targets, dt, mu_p, _NO_TRACE)
+        else:
+            rows = np.zeros((len(targets), TRACE_COLS))
+            touched = m.run(self._q, targets, dt, mu_p, rows)
+            for r in rows:
+                self.trace.append(_object_state(m.com, r[0:2], float(r[2]), r[3:6], r[6] != 0))
+        if len(targets):
+            self._q = targets[-1].copy()
         return touched, 90.0 if m.tipped else 0.0
 
     def close(self) -> None:
@@ -331,7 +457,7 @@ class PlanarSimulator(Simulator):
 
 
 # The model's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "planar-1"
+PHYSICS_VERSION = "planar-2"  # 2: compiled steps; results moved by rounding only
 ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
 PHYSICS_SETTINGS = FrictionSettings()
 

@@ -148,3 +148,49 @@ def test_rendered_pose_matches_the_state():
     pose = sim.object_state().pose
     centre = obs.points_m.mean(axis=0)
     assert math.hypot(centre[0] - pose.x_m, centre[1] - pose.y_m) < 1e-3
+
+
+def test_a_traced_push_is_the_untraced_push():
+    """`_advance` runs the steps in one compiled call; with a trace it records every step's
+    state, and the push it traces is the same push."""
+    plain = _pushed_box(PlanarSimulator(), 0.1, 0.4)
+    sim = PlanarSimulator()
+    sim.trace = []
+    traced = _pushed_box(sim, 0.1, 0.4)
+    assert traced == plain
+    assert len(sim.trace) == traced.steps
+    assert sim.trace[-1] == sim.object_state()
+    yaws = [st.yaw_rad for st in sim.trace]
+    assert yaws[0] == 0.0 and abs(yaws[-1]) > 0.05  # it turned, step by step
+
+
+def test_engine_friction_impulse_holds_and_then_slides():
+    """`FootprintFriction.impulse` (the engines' floor friction): a slow twist is cancelled
+    exactly (static friction); a fast slide loses mu m g dt of momentum per step and moves the
+    pressure centre forward."""
+    from comexp.backends.floor_friction import FootprintFriction
+    from comexp.scene import PusherSpec
+
+    obj = box_object(0.08, 0.05, 0.015)
+    fr = FootprintFriction(obj, 0.5, 0.5, PusherSpec())
+    slow = np.array([1e-4, 0.0, 1e-3])
+    assert np.array_equal(fr.impulse(slow, 0.3, 1e-3, False), -fr.M * slow)
+    fr = FootprintFriction(obj, 0.5, 0.5, PusherSpec())  # the weight's pressure again
+    fast = np.array([0.3, 0.0, 0.0])
+    imp = fr.impulse(fast, 0.0, 1e-3, False)
+    assert imp[0] == pytest.approx(-0.5 * obj.mass_kg * 9.81 * 1e-3, rel=1e-6)
+    assert abs(imp[1]) < 1e-12 and abs(imp[2]) < 1e-12
+    assert fr.cop[0] == pytest.approx(0.5 * 0.015 / 2, rel=1e-6)
+
+
+def test_kept_samples_are_the_fresh_ones_and_the_callers_own():
+    """A rebuild reuses the footprint's samples (`samples_of`): the same numbers as a fresh
+    clipping, and a copy each time, so that nothing a caller does reaches the next build."""
+    from comexp.backends.floor_friction import samples_of
+
+    pts, a = footprint_samples(RECT, 400)
+    p1, a1 = samples_of(RECT, 400)
+    assert np.array_equal(p1, pts) and np.array_equal(a1, a)
+    p1[:] = 0.0
+    p2, _ = samples_of(RECT, 400)
+    assert np.array_equal(p2, pts)

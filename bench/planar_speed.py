@@ -1,0 +1,142 @@
+"""Planar backend: time per push, and the same pushes against an older version of the model.
+
+    .venv/bin/python bench/planar_speed.py [--repeat 3]
+    git show HEAD~1:backends/planar_sim.py > /tmp/old/planar_sim.py
+    git show HEAD~1:backends/floor_friction.py > /tmp/old/floor_friction.py
+    .venv/bin/python bench/planar_speed.py --baseline /tmp/old
+
+The pushes: 3 objects (rect_8x5, l_shape, triangle_right_11x7, CoM off-centre) x floors
+mu 0.1, 1 and anisotropic (0.1, 1) x lever arms 0, 5 mm, 1 cm x 4 and 40 cm/s, a 3 cm
+push into the object's -x side (mu_pusher 0.5). With `--baseline DIR` (the two modules of
+another version) every push runs with both, interleaved on the same machine state: the
+wall-time ratio and the largest differences in rotation (deg) and final pose are printed.
+
+`--self-noise` instead runs each push twice on one version (the baseline if given), the
+second time with the object's start moved by 1e-15 m: the model's own sensitivity to
+rounding (its solver tolerances and stick/slip decisions), the floor under which two
+versions that round differently cannot agree.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from comexp.backends.planar_sim import PlanarSimulator
+from comexp.objects import com_point, load_builtin, to_object_spec
+from comexp.scene import FloorSpec, SceneSpec
+from comexp.simulator import contact_push
+
+OBJECTS = ("rect_8x5", "l_shape", "triangle_right_11x7")
+FLOORS = ((0.1, 0.1), (1.0, 1.0), (0.1, 1.0))
+LEVERS_M = (0.0, 0.005, 0.01)
+SPEEDS_M_S = (0.04, 0.4)
+
+
+def cases() -> list[tuple[str, SceneSpec, object]]:
+    out = []
+    for name in OBJECTS:
+        od = load_builtin(name)
+        spec = to_object_spec(od, com_point(od, 0), 1.0, 0.5)
+        outline = np.asarray(spec.outline_m)
+        for mu in FLOORS:
+            for lever in LEVERS_M:
+                for speed in SPEEDS_M_S:
+                    scene = SceneSpec(FloorSpec(*mu), spec)
+                    y = spec.com_m[1] + lever
+                    cmd = contact_push((outline[:, 0].min(), y), (1.0, 0.0), 0.03, speed, 0.005)
+                    label = f"{name} mu={mu} lever={lever * 1e3:.0f}mm v={speed * 100:.0f}cm/s"
+                    out.append((label, scene, cmd))
+    return out
+
+
+def load_baseline(directory: Path) -> type:
+    """PlanarSimulator of the version in `directory` (its floor_friction.py beside it)."""
+    ff_name = "planar_baseline_floor_friction"
+    spec = importlib.util.spec_from_file_location(ff_name, directory / "floor_friction.py")
+    ff = importlib.util.module_from_spec(spec)
+    sys.modules[ff_name] = ff
+    spec.loader.exec_module(ff)
+    src = (directory / "planar_sim.py").read_text()
+    path = directory / "_planar_sim_baseline.py"
+    path.write_text(src.replace("comexp.backends.floor_friction", ff_name))
+    spec = importlib.util.spec_from_file_location("planar_baseline_sim", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["planar_baseline_sim"] = mod
+    spec.loader.exec_module(mod)
+    return mod.PlanarSimulator
+
+
+def run(sim_cls: type, scene: SceneSpec, cmd) -> tuple[float, object]:
+    sim = sim_cls()
+    sim.build(scene)
+    t0 = time.perf_counter()
+    out = sim.push(cmd)
+    return time.perf_counter() - t0, out
+
+
+def self_noise(sim_cls: type, all_cases) -> None:
+    worst, worst_label = 0.0, ""
+    for label, scene, cmd in all_cases:
+        nudged = replace(scene, initial_pose=replace(scene.initial_pose, x_m=1e-15))
+        a, b = run(sim_cls, scene, cmd)[1], run(sim_cls, nudged, cmd)[1]
+        d = abs(a.rotation_deg - b.rotation_deg)
+        print(f"{label:48s} rot {a.rotation_deg:+9.4f} deg  nudged d_rot {d:.1e}")
+        if d > worst:
+            worst, worst_label = d, label
+    print(f"max |d rotation| under a 1e-15 m nudge: {worst:.2e} deg ({worst_label})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--baseline", type=Path, help="directory with an older planar_sim.py")
+    ap.add_argument("--repeat", type=int, default=1, help="timed runs per push (best kept)")
+    ap.add_argument("--self-noise", action="store_true", help="one version vs itself, nudged")
+    args = ap.parse_args()
+    old_cls = load_baseline(args.baseline) if args.baseline else None
+    all_cases = cases()
+    if args.self_noise:
+        self_noise(old_cls or PlanarSimulator, all_cases)
+        return
+    for _, scene, cmd in all_cases[:2]:  # warm-up: compile / load the kernels
+        run(PlanarSimulator, scene, cmd)
+        if old_cls:
+            run(old_cls, scene, cmd)
+    t_new = t_old = 0.0
+    d_rot = d_pos = 0.0
+    worst = ""
+    for label, scene, cmd in all_cases:
+        tn, out = min((run(PlanarSimulator, scene, cmd) for _ in range(args.repeat)),
+                      key=lambda r: r[0])  # fmt: skip
+        t_new += tn
+        line = f"{label:48s} {out.status.value:8s} rot {out.rotation_deg:+9.4f} deg"
+        line += f"  {tn * 1e3:7.1f} ms"
+        if old_cls:
+            to, ref = min((run(old_cls, scene, cmd) for _ in range(args.repeat)),
+                          key=lambda r: r[0])  # fmt: skip
+            t_old += to
+            dr = abs(out.rotation_deg - ref.rotation_deg)
+            a, b = out.pose_after, ref.pose_after
+            dp = max(abs(a.x_m - b.x_m), abs(a.y_m - b.y_m))
+            same = out.status == ref.status and out.steps == ref.steps
+            line += f"  old {to * 1e3:7.1f} ms  x{to / tn:5.1f}  d_rot {dr:.1e} d_pos {dp:.1e}"
+            line += "" if same else f"  DIFFERS: {ref.status.value} {ref.steps} steps"
+            if dr > d_rot:
+                d_rot, worst = dr, label
+            d_pos = max(d_pos, dp)
+        print(line)
+    n = len(all_cases)
+    print(f"{n} pushes: {t_new / n * 1e3:.1f} ms per push (new)")
+    if old_cls:
+        print(f"old {t_old / n * 1e3:.1f} ms per push; speed-up x{t_old / t_new:.1f}")
+        print(f"max |d rotation| {d_rot:.2e} deg ({worst}); max |d position| {d_pos:.2e} m")
+
+
+if __name__ == "__main__":
+    main()
