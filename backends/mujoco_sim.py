@@ -665,7 +665,7 @@ class MujocoSimulator(Simulator):
 
 
 # The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "mujoco-2"  # 2: the shared push protocol (retract, one settle rule)
+PHYSICS_VERSION = "mujoco-3"  # 2: the shared push protocol; 3: compiled footprint friction
 ENGINE_DISTRIBUTION = "mujoco"
 PHYSICS_SETTINGS = (DEFAULT_CONTACT, FrictionSettings())
 

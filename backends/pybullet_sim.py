@@ -160,7 +160,7 @@ def _pixel_centred_projection(proj: Sequence[float], width_px: int, height_px: i
 
 
 # The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "pybullet-2"  # 2: the shared push protocol (retract, one settle rule)
+PHYSICS_VERSION = "pybullet-3"  # 2: the shared push protocol; 3: compiled footprint friction
 ENGINE_DISTRIBUTION = "pybullet"
 # every setting of this backend that shapes its physics (module constants, solver settings)
 PHYSICS_SETTINGS = {
