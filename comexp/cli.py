@@ -50,6 +50,9 @@ VERSIONED_PACKAGES = (
     "omegaconf",
     "ray",
     "sqlalchemy",
+    "numba",
+    "pandas",
+    "psycopg",
 )
 
 
