@@ -189,10 +189,8 @@ class PybulletSimulator(Simulator):
         self._pusher = -1
         self._object = -1
         self._com_local = np.zeros(3)
-        self._outline = np.zeros((0, 2))
         self._view: list[float] = []
         self._proj: list[float] = []
-        self._steps_total = 0
         self._pusher_target = (0.0, 0.0)
         self._pusher_z = 0.0
 
@@ -299,7 +297,6 @@ class PybulletSimulator(Simulator):
 
         obj = scene.obj
         self._com_local = np.array([obj.com_m[0], obj.com_m[1], obj.height_m / 2.0])
-        self._outline = np.asarray(obj.outline_m, dtype=float)
         pose = scene.initial_pose
         self._object = pb.loadURDF(
             self._object_urdf_path(obj),
@@ -475,7 +472,6 @@ class PybulletSimulator(Simulator):
         for tx, ty in targets:
             self._command_pusher((tx, ty))
             self._step_once()
-            self._steps_total += 1
             if not touched and pb.getContactPoints(self._pusher, self._object, physicsClientId=c):
                 touched = True
             if self.trace is not None:
