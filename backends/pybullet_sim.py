@@ -17,10 +17,12 @@ Contact and solver choices (measured, see docs/physics_pybullet.md):
   world x, mu_y along y (elliptic cone; diagonal slides: see docs/physics_pybullet.md).
 - Pair friction is a product in pybullet: object lateralFriction = 1, floor = max(mu_x, mu_y),
   pusher = mu_pusher.
-- The pusher is a heavy (100 kg) free rigid cylinder: before each step its velocity is set so
-  that it reaches the commanded path point at the end of the step (zero lag in free space) and
-  its weight is cancelled. Being a rigid body, its contact with the object also gets slip-aligned
-  friction. It is only teleported when clear of the object.
+- The pusher is a heavy (100 kg) free rigid sphere: before each step its velocity is set so
+  that it reaches the commanded path point at the end of the step (zero lag in free space); it
+  falls with gravity within a step like the resting object and is put back at its height before
+  the next. Its inertia is a thin rod's along a horizontal axle across the push: it rolls freely
+  in the vertical plane, so its contact has Coulomb friction in the floor's plane only, as in
+  the model (`_pusher_urdf`, `_step_once`). It is only teleported when clear of the object.
 """
 
 from __future__ import annotations
@@ -75,6 +77,9 @@ pb = _import_pybullet_quietly()
 # Pusher mass (kg): 500x the object's, so contact impulses change its velocity by < 0.2 %
 # of the object's change within a step; its velocity is re-imposed before every step.
 _PUSHER_MASS_KG = 100.0
+# The pusher's inertia about its axle per kg (m^2): ~0, so that rolling absorbs any vertical slip
+# at its contact within the step's solve (a valid tensor: a thin rod's).
+_PUSHER_AXLE_INERTIA_M2 = 1e-10
 
 
 def _fmt(x: float) -> str:
@@ -132,14 +137,20 @@ def _pusher_urdf(radius_m: float, mass_kg: float) -> str:
     contact's resultant (see `pusher_contact_height_m`): Bullet reduces the line contact of a
     vertical cylinder or capsule with a vertical face to 1-3 points at arbitrary heights (near
     the face's top at impact, measured 13.8 of 15 mm), whose moment tilts a low object by ~1 deg;
-    a sphere touches at one point, where the resultant is. Its large inertia keeps contact
-    torques from turning it in one step."""
+    a sphere touches at one point, where the resultant is.
+
+    Its inertia is a thin rod's along the body x axis (the "axle", kept horizontal and across
+    the push, see `_orient_pusher`): about the axle it rolls freely, so its contact carries no
+    vertical friction (the model's pusher friction acts in the floor's plane only; with Bullet's
+    vertical friction a sticky pusher lifted a low object's pushed side and tilted it 1.14 deg),
+    while about the other axes a large inertia keeps contact torques from turning it."""
+    i_axle = _fmt(mass_kg * _PUSHER_AXLE_INERTIA_M2)
     i = _fmt(mass_kg * 1.0)
     geom = f'<geometry><sphere radius="{_fmt(radius_m)}"/></geometry>'
     return (
         '<?xml version="1.0"?><robot name="pusher"><link name="tip">'
         f'<inertial><mass value="{_fmt(mass_kg)}"/>'
-        f'<inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/>'
+        f'<inertia ixx="{i_axle}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/>'
         f"</inertial><collision>{geom}</collision></link></robot>"
     )
 
@@ -160,7 +171,7 @@ def _pixel_centred_projection(proj: Sequence[float], width_px: int, height_px: i
 
 
 # The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "pybullet-3"  # 2: the shared push protocol; 3: compiled footprint friction
+PHYSICS_VERSION = "pybullet-4"  # 2: shared push protocol; 3: compiled friction; 4: roller pusher
 ENGINE_DISTRIBUTION = "pybullet"
 # every setting of this backend that shapes its physics (module constants, solver settings)
 PHYSICS_SETTINGS = {
@@ -349,23 +360,22 @@ class PybulletSimulator(Simulator):
         """One engine step with the pusher driven onto its target.
 
         The pusher is a heavy free rigid body: before every step its velocity is set to reach
-        the target at the end of the step and its weight is cancelled, so it follows the path
-        with no lag in free space and is barely slowed by a 0.2 kg object (mass ratio 500).
+        the target at the end of the step, so it follows the path with no lag in free space and
+        is barely slowed by a 0.2 kg object (mass ratio 500). It falls under gravity within the
+        step like the object resting on the floor, and is put back at its height before the
+        next: Bullet takes a contact's friction direction from the relative velocity before the
+        solve, gravity included, so a pusher held up against the object's in-step fall g dt saw
+        a vertical slip that its friction fought (it carried ~5% of the object's weight).
         """
         c = self._cid
-        pos, _ = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=c)
+        pos, quat = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=c)
+        if pos[2] != self._pusher_z:
+            pos = (pos[0], pos[1], self._pusher_z)
+            pb.resetBasePositionAndOrientation(self._pusher, pos, quat, physicsClientId=c)
         inv_dt = 1.0 / self.settings.timestep_s
         tx, ty = self._pusher_target
-        vel = [(tx - pos[0]) * inv_dt, (ty - pos[1]) * inv_dt, (self._pusher_z - pos[2]) * inv_dt]
+        vel = [(tx - pos[0]) * inv_dt, (ty - pos[1]) * inv_dt, 0.0]
         pb.resetBaseVelocity(self._pusher, vel, [0.0, 0.0, 0.0], physicsClientId=c)
-        pb.applyExternalForce(
-            self._pusher,
-            -1,
-            [0.0, 0.0, _PUSHER_MASS_KG * GRAVITY_M_S2],
-            pos,
-            pb.WORLD_FRAME,
-            physicsClientId=c,
-        )
         if self._fric is not None:
             self._apply_floor_friction()
         pb.stepSimulation(physicsClientId=c)
@@ -403,6 +413,22 @@ class PybulletSimulator(Simulator):
 
     def _command_pusher(self, xy: Sequence[float]) -> None:
         self._pusher_target = (float(xy[0]), float(xy[1]))
+
+    def _orient_pusher(self, toward_xy: Sequence[float]) -> None:
+        """Turn the pusher's axle (body x) horizontal and across its coming travel, when it is
+        not already: rolling about the axle then frees the contact's vertical slip only."""
+        c = self._cid
+        pos, quat = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=c)
+        d = np.array([toward_xy[0] - pos[0], toward_xy[1] - pos[1]])
+        norm = float(np.hypot(d[0], d[1]))
+        if norm < 1e-9:
+            return
+        axle = pb.getMatrixFromQuaternion(quat)[0::3]  # body x in world (first column)
+        if abs(axle[0] * d[0] + axle[1] * d[1]) < 1e-6 * norm and abs(axle[2]) < 1e-6:
+            return
+        yaw = float(np.arctan2(d[1], d[0])) + np.pi / 2.0
+        q = pb.getQuaternionFromEuler([0.0, 0.0, yaw])
+        pb.resetBasePositionAndOrientation(self._pusher, pos, q, physicsClientId=c)
 
     def _pusher_xy(self) -> np.ndarray:
         pos, _ = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=self._cid)
@@ -469,6 +495,7 @@ class PybulletSimulator(Simulator):
         self._require_scene()
         c = self._cid
         touched = False
+        self._orient_pusher(targets[-1])
         for tx, ty in targets:
             self._command_pusher((tx, ty))
             self._step_once()

@@ -3,15 +3,13 @@
 Closed forms where they exist (mu g deceleration along each floor axis, the elliptic law on
 diagonal slides, spin-down under linear pressure centred under the CoM, no turn for a normal
 push through the CoM), the planar backend as the truth where they don't (turn magnitudes, the
-coupled slide-and-spin of a disc). `backend=planar` passes all of it. Cases an engine fails
-today are `xfail(strict=False)` with the value measured on this machine in the reason
-(docs/physics.md lists them); a fix shows up as XPASS.
+coupled slide-and-spin of a disc). Every backend passes all of it, with no xfail; a case an
+engine cannot pass is marked xfail with its measured value and listed in docs/physics.md.
 """
 
 from __future__ import annotations
 
 import math
-import os
 from functools import cache
 
 import numpy as np
@@ -25,20 +23,6 @@ from comexp.simulator import PushStatus, contact_push, make_simulator
 BACKENDS = ["planar", "pybullet", "mujoco"]
 PUSH_LENGTH_M = 0.03
 H_BUILTIN = 0.015  # the built-in objects' height
-
-
-def _known(request, backend: str) -> None:
-    """xfail(strict=False) for a case an engine fails today (tests/contract_known.py);
-    COMEXP_CONTRACT_STRICT=1 runs every case as a plain test (to measure them anew)."""
-    from contract_known import KNOWN_FAILURES
-
-    if os.environ.get("COMEXP_CONTRACT_STRICT") == "1":
-        return
-    case = request.node.callspec.id.split("-", 1)[1] if "-" in request.node.callspec.id else ""
-    cases, measured = KNOWN_FAILURES.get((backend, request.node.originalname), ((), ""))
-    if case in cases:
-        reason = f"{backend} fails this today (measured: {measured})"
-        request.node.add_marker(pytest.mark.xfail(reason=reason, strict=False))
 
 
 @pytest.fixture(params=BACKENDS, scope="module")
@@ -92,8 +76,7 @@ def _slide_decel(sim, direction: np.ndarray, v0: float) -> tuple[np.ndarray, flo
     ids=["iso0.1", "iso1", "aniso_x0.1", "aniso_x1"],
 )
 @pytest.mark.parametrize("axis", [0, 1], ids=["x", "y"])
-def test_sliding_deceleration_is_mu_g(request, sim, mu_x, mu_y, axis):
-    _known(request, sim.name)
+def test_sliding_deceleration_is_mu_g(sim, mu_x, mu_y, axis):
     mu = (mu_x, mu_y)[axis]
     sim.build(SceneSpec(FloorSpec(mu_x, mu_y), box_object(0.08, 0.05, 0.03)))
     sim.step(0.05)
@@ -112,10 +95,9 @@ def elliptic_acceleration(mu_x: float, mu_y: float, s: np.ndarray) -> np.ndarray
 
 @pytest.mark.parametrize("mu", [(1.0, 1.0), (0.1, 1.0), (1.0, 0.1)], ids=["iso1", "x0.1", "x1"])
 @pytest.mark.parametrize("angle_deg", [30, 45, 60])
-def test_diagonal_slide_follows_the_elliptic_law(request, sim, mu, angle_deg):
+def test_diagonal_slide_follows_the_elliptic_law(sim, mu, angle_deg):
     """The initial deceleration of a slide at an angle to the floor's axes (the law is
     anisotropic: the deceleration is not along the slide, which then curves)."""
-    _known(request, sim.name)
     sim.build(SceneSpec(FloorSpec(*mu), box_object(0.08, 0.05, 0.03)))
     sim.step(0.05)
     s = np.array([math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))])
@@ -174,8 +156,7 @@ def _spin_about_com(sim, obj, w0: float) -> None:
 
 @pytest.mark.parametrize("mu", [0.1, 1.0])
 @pytest.mark.parametrize("shape,com", SPIN_CASES, ids=[f"{s}-{c}" for s, c in SPIN_CASES])
-def test_spin_down_matches_linear_pressure(request, sim, shape, com, mu):
-    _known(request, sim.name)
+def test_spin_down_matches_linear_pressure(sim, shape, com, mu):
     obj = _spin_object(shape, com)
     sim.build(SceneSpec(FloorSpec(mu, mu), obj))
     sim.step(0.05)
@@ -231,10 +212,9 @@ def _slide_and_spin(sim, ratio: float, mu: float = 0.5) -> tuple[float, float, f
 
 
 @pytest.mark.parametrize("ratio", [0.3, 1.0, 3.0])
-def test_disc_stops_sliding_and_spinning_together(request, sim, planar, ratio):
+def test_disc_stops_sliding_and_spinning_together(sim, planar, ratio):
     """Farkas et al., PRL 90, 248302 (2003): sliding and spinning of a flat disc end at the
     same moment, v / (w R) tending to a fixed ratio; the engines must follow the planar value."""
-    _known(request, sim.name)
     t_v, t_w, eps = _slide_and_spin(sim, ratio)
     assert abs(t_v - t_w) < 0.05 * max(t_v, t_w) + 2e-3, f"{sim.name}: {t_v:.3f} vs {t_w:.3f} s"
     _, _, eps_ref = _slide_and_spin(planar, ratio)
@@ -268,10 +248,9 @@ def _rect(com_cm=(1.5, 0.8), mu_pusher=0.5):
 
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
-def test_same_push_at_any_yaw_turns_the_same(request, sim, mu_floor, speed):
+def test_same_push_at_any_yaw_turns_the_same(sim, mu_floor, speed):
     """The same object-frame push (8x5 cm, CoM (1.5, 0.8) cm, contact 1 cm beside the CoM
     line) at 8 yaws, non-multiples of 45 deg included."""
-    _known(request, sim.name)
     obj = _rect()
     contact = (0.015 + 0.01, -0.025)
     rots = [
@@ -284,8 +263,7 @@ def test_same_push_at_any_yaw_turns_the_same(request, sim, mu_floor, speed):
 
 
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
-def test_moment_of_impact_within_a_step_does_not_matter(request, sim, mu_floor):
-    _known(request, sim.name)
+def test_moment_of_impact_within_a_step_does_not_matter(sim, mu_floor):
     obj = _rect()
     speed = 0.4
     step_m = speed * sim.settings.timestep_s
@@ -340,9 +318,8 @@ def _builtin_spec(name: str, k: int, mu_pusher: float = 1.0):
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
 @pytest.mark.parametrize("name,k,yaw", THROUGH_COM)
-def test_normal_push_through_the_com_does_not_turn(request, sim, name, k, yaw, mu_floor, speed):
+def test_normal_push_through_the_com_does_not_turn(sim, name, k, yaw, mu_floor, speed):
     """Every built-in object, 2 CoMs, 2 yaws off the floor's axes, a sticky pusher."""
-    _known(request, sim.name)
     spec = _builtin_spec(name, k)
     found = _through_com_contact(np.asarray(spec.outline_m), np.asarray(spec.com_m))
     if found is None:
@@ -367,11 +344,10 @@ def _lever_push(sim, name, k, lever_m, mu_floor, speed):
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
 @pytest.mark.parametrize("mu_floor", [0.1, 1.0])
 @pytest.mark.parametrize("name,k", LEVER_CASES, ids=[f"{n}-{k}" for n, k in LEVER_CASES])
-def test_turn_follows_the_torque_and_the_reference(request, sim, planar, name, k, mu_floor, speed):
+def test_turn_follows_the_torque_and_the_reference(sim, planar, name, k, mu_floor, speed):
     """A lever arm >= 2 mm turns with the torque (CCW for a contact to the right of the line
     through the CoM, looking along the push); >= 5 mm: within 15% (4 cm/s) / 20% (40 cm/s) of
     the planar reference's rotation."""
-    _known(request, sim.name)
     for lever in (0.002, -0.002):
         rot = _lever_push(sim, name, k, lever, mu_floor, speed)
         assert rot * math.copysign(1.0, lever) > 0.0, f"{sim.name}: lever {lever}: {rot:.2f}"
@@ -383,10 +359,9 @@ def test_turn_follows_the_torque_and_the_reference(request, sim, planar, name, k
 
 
 @pytest.mark.parametrize("name", ["rect_8x5", "hexagon_r5", "l_shape", "ellipse_12x7"])
-def test_a_low_object_neither_lifts_nor_tilts(request, sim, name):
+def test_a_low_object_neither_lifts_nor_tilts(sim, name):
     """Every step of a 40 cm/s push on mu 1 (lever 1 cm): an object lower than its smallest
     width stays on the floor (lift <= 0.2 mm, tilt <= 0.5 deg)."""
-    _known(request, sim.name)
     spec = _builtin_spec(name, 0, mu_pusher=1.0)
     foot, inward = _through_com_contact(np.asarray(spec.outline_m), np.asarray(spec.com_m))
     contact = foot + 0.01 * np.array([inward[1], -inward[0]])
