@@ -100,7 +100,7 @@ class CameraConfig:
     and after each push only. The default is the lowest measured rate that unwraps every
     rotation of the study (docs/method.md, "Tracking during the push")."""
 
-    fps: float = 10.0
+    fps: float = 30.0
 
 
 @dataclass

@@ -66,7 +66,7 @@ class EpisodeSpec:
     physics: str = ""
     # Tracking frames per second taken while the object moves during a push (`camera.fps`);
     # 0 = the images before and after each push only. Vision only (the oracle needs none).
-    camera_fps: float = 10.0  # the config default (`camera.fps`), measured in docs/method.md
+    camera_fps: float = 30.0  # the config default (`camera.fps`), measured in docs/method.md
 
     @classmethod
     def for_object(

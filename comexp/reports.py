@@ -61,7 +61,7 @@ PROTOCOL_DEFAULTS: dict[str, Any] = {
     "mass_kg": 0.2,
     "push_length_cm": 3.0,
     "recenter_beyond_cm": 10.0,
-    "camera_fps": 10.0,
+    "camera_fps": 30.0,
 }
 _DEFAULT_ESTIMATOR: dict[str, Any] = json.loads(canonical_json(EstimatorSettings()))
 # Core columns: always in a label (unless pooled), in this order.

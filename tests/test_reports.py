@@ -142,7 +142,7 @@ def test_every_condition_column_separates(tmp_path: Path) -> None:
         "recenter_beyond_cm": dict(recenter_beyond_cm=0.0),
         "estimator": dict(estimator=EstimatorSettings(theta_T_deg=2.0)),
         "physics": dict(physics="pybullet/pybullet-3/pybullet-3.2.7/0123456789"),
-        "camera_fps": dict(camera_fps=30.0),
+        "camera_fps": dict(camera_fps=15.0),
     }
     assert set(variants) == set(CONDITION_COLUMNS)
     with ResultsDB(tmp_path / "v.db") as db:
