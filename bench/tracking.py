@@ -6,8 +6,10 @@
 
 A strided slice of the job's own grid (`bench/episode_profile.job_specs`: every object, both
 pusher frictions, both Izz scales) on one floor `mu`; every episode is run once per camera
-rate in `--fps` (vision) and once with `rotation_source=oracle` (`--oracle`), the variants of
-one episode back to back so that the machine's load hits them alike. Watching never changes
+rate in `--fps` (vision), once per rate > 0 with full-image tracking frames (`--full-frames`:
+the cost before the engines' window renders) and once with `rotation_source=oracle`
+(`--oracle`), the variants of one episode back to back so that the machine's load hits them
+alike. Watching never changes
 the physics (frames hang on the protocol's checks), so the variants differ only in what was
 measured and in what the estimator then chose.
 
@@ -31,7 +33,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs  # noqa: E402
 
-from comexp.episode import EpisodeResult, run_episode  # noqa: E402
+from comexp.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
 from comexp.simulator import make_simulator  # noqa: E402
 
 ALIAS_DEG = 10.0
@@ -65,6 +67,12 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=48)
     ap.add_argument("--fps", default="0,10,15,30", help="camera rates (vision), 0 first")
     ap.add_argument("--oracle", action="store_true", help="also rotation_source=oracle")
+    ap.add_argument(
+        "--full-frames",
+        action="store_true",
+        help="also every rate > 0 with full-image tracking frames (render_depth), as before "
+        "the engines' window renders",
+    )
     args = ap.parse_args()
     rates = [float(f) for f in args.fps.split(",")]
     if rates[0] != 0.0:
@@ -76,16 +84,25 @@ def main() -> None:
     sim = make_simulator(args.backend, **opts)
     run_episode(specs[0], sim)  # warm-up (JIT, renderer)
     variants: list[tuple[str, dict]] = [(f"{f:g} fps", {"camera_fps": f}) for f in rates]
+    if args.full_frames:
+        variants += [(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
     if args.oracle:
         variants.append(("oracle", {}))
     results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
     walls: dict[str, list[float]] = {v: [] for v, _ in variants}
+    window = sim.render_tracking_depth
     t0 = time.perf_counter()
     for spec in specs:
+        # untimed: MuJoCo creates a new object geometry's renderer (~70 ms) on its first
+        # render, which would otherwise be charged to whichever variant runs first
+        sim.build(build_scene(spec))
+        sim.render_depth()
         for label, change in variants:
             s = replace(spec, **change)
             if label == "oracle":
                 s = replace(s, estimator=replace(s.estimator, rotation_source="oracle"))
+            # "full": tracking frames through the full image (the hook's default)
+            sim.render_tracking_depth = sim.render_depth if label.endswith("full") else window
             t = time.process_time()  # CPU time: the machine's other load does not count
             results[label].append(run_episode(s, sim))
             walls[label].append(time.process_time() - t)
