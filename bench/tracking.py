@@ -17,7 +17,8 @@ Per rate: pushes, the share of pushes turning > 1 deg whose measured rotation ha
 sign, the number of "aliased" pushes (measured off the true rotation by > 10 deg: a wrong
 symmetric basin), the worst |measured - true| rotation, frames per push, the mean CoM error,
 and the episode's CPU time (`time.process_time`, so that other load on a shared machine does
-not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals).
+not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals);
+then per variant the tracking renders' mean CPU time and size.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -34,6 +36,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from episode_profile import job_specs  # noqa: E402
 
 from comexp.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
+from comexp.scene import DepthImage  # noqa: E402
 from comexp.simulator import make_simulator  # noqa: E402
 
 ALIAS_DEG = 10.0
@@ -57,6 +60,18 @@ def summarise(label: str, results: list[EpisodeResult], walls: list[float], base
         f"{max(errs, default=0.0):8.2f} | {big:7.1f} | {frames:6.1f} | {mean_err:8.3f} | "
         f"{ratio:5.3f} / {total:5.3f} |"
     )
+
+
+def _timed(render: Callable[[], DepthImage], log: list[tuple[float, int]]):
+    """`render`, logging each call's CPU time and pixel count."""
+
+    def timed() -> DepthImage:
+        t = time.process_time()
+        img = render()
+        log.append((time.process_time() - t, img.depth_m.size))
+        return img
+
+    return timed
 
 
 def main() -> None:
@@ -91,6 +106,7 @@ def main() -> None:
     results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
     walls: dict[str, list[float]] = {v: [] for v, _ in variants}
     window = sim.render_tracking_depth
+    renders: dict[str, list[tuple[float, int]]] = {v: [] for v, _ in variants}
     t0 = time.perf_counter()
     for spec in specs:
         # untimed: MuJoCo creates a new object geometry's renderer (~70 ms) on its first
@@ -102,7 +118,8 @@ def main() -> None:
             if label == "oracle":
                 s = replace(s, estimator=replace(s.estimator, rotation_source="oracle"))
             # "full": tracking frames through the full image (the hook's default)
-            sim.render_tracking_depth = sim.render_depth if label.endswith("full") else window
+            render = sim.render_depth if label.endswith("full") else window
+            sim.render_tracking_depth = _timed(render, renders[label])
             t = time.process_time()  # CPU time: the machine's other load does not count
             results[label].append(run_episode(s, sim))
             walls[label].append(time.process_time() - t)
@@ -118,6 +135,14 @@ def main() -> None:
     base = walls[variants[0][0]]
     for label, _ in variants:
         summarise(label, results[label], walls[label], base)
+    for label, _ in variants:
+        if renders[label]:
+            ms = 1e3 * statistics.fmean(t for t, _ in renders[label])
+            px = statistics.fmean(n for _, n in renders[label])
+            print(
+                f"{label}: {len(renders[label])} tracking renders, {ms:.2f} ms CPU, "
+                f"{px:.0f} px each"
+            )
 
 
 if __name__ == "__main__":
