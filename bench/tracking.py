@@ -18,7 +18,9 @@ sign, the number of "aliased" pushes (measured off the true rotation by > 10 deg
 symmetric basin), the worst |measured - true| rotation, frames per push, the mean CoM error,
 and the episode's CPU time (`time.process_time`, so that other load on a shared machine does
 not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals);
-then per variant the tracking renders' mean CPU time and size.
+then per variant the tracking renders' mean CPU time and size; with `--full-frames` how far
+the measured rotations of window and full frames are apart; with `--compare-frames` a
+pixel-level comparison of window and full frames over every frame of a further run.
 """
 
 from __future__ import annotations
@@ -31,11 +33,14 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 
+import numpy as np
+
 sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs  # noqa: E402
 
 from comexp.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
+from comexp.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
 from comexp.scene import DepthImage  # noqa: E402
 from comexp.simulator import make_simulator  # noqa: E402
 
@@ -87,6 +92,12 @@ def main() -> None:
         action="store_true",
         help="also every rate > 0 with full-image tracking frames (render_depth), as before "
         "the engines' window renders",
+    )
+    ap.add_argument(
+        "--compare-frames",
+        action="store_true",
+        help="then run every episode once more at the last rate, rendering each tracking frame "
+        "as window and as full image, and compare their pixels",
     )
     args = ap.parse_args()
     rates = [float(f) for f in args.fps.split(",")]
@@ -143,6 +154,67 @@ def main() -> None:
                 f"{label}: {len(renders[label])} tracking renders, {ms:.2f} ms CPU, "
                 f"{px:.0f} px each"
             )
+    for label, _ in variants:
+        if label.endswith("full"):
+            compare_results(label, results[label.replace("full", "fps")], results[label])
+    if args.compare_frames:
+        compare_frames(sim, [replace(s, camera_fps=rates[-1]) for s in specs], window)
+
+
+def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResult]) -> None:
+    """Window vs full-image tracking frames, episode by episode: over the pushes both chose
+    alike (same contact and direction), the largest difference in measured rotation; and how
+    many episodes chose a different push somewhere (a measured rotation moved a decision)."""
+    worst, diverged = 0.0, 0
+    for a, b in zip(win, full, strict=True):
+        for p, q in zip(a.pushes, b.pushes, strict=False):
+            if (p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y) != (
+                q.contact_x_cm,
+                q.contact_y_cm,
+                q.dir_x,
+                q.dir_y,
+            ):
+                diverged += 1
+                break
+            worst = max(worst, abs(p.rotation_deg - q.rotation_deg))
+    print(
+        f"{label} vs window: max |rotation difference| {worst:.2e} deg over the pushes chosen "
+        f"alike; {diverged} of {len(win)} episodes chose a different push"
+    )
+
+
+def compare_frames(sim, specs: list, window: Callable[[], DepthImage]) -> None:
+    """Every tracking frame rendered both ways (window and full image) in the same state:
+    how far the window's pixels are from the full image's window, whether the object mask
+    (the tracker's threshold) differs, and whether any object pixel (pusher masked) of the
+    full image lies outside the window."""
+    diffs: list[float] = []
+    flips = outside = 0
+
+    def both() -> DepthImage:
+        nonlocal flips, outside
+        w, f = window(), sim.render_depth()
+        fc, wc = f.camera, w.camera
+        u0, v0 = round(fc.cx_px - wc.cx_px), round(fc.cy_px - wc.cy_px)
+        h, wd = w.depth_m.shape
+        part = f.depth_m[v0 : v0 + h, u0 : u0 + wd]
+        diffs.append(float(np.max(np.abs(w.depth_m - part))))
+        level = fc.position_m[2] - MIN_HEIGHT_M
+        flips += bool(np.any((w.depth_m < level) != (part < level)))
+        xy = sim._pusher_xy()
+        masked = mask_pusher(f, (float(xy[0]), float(xy[1])), sim._pusher_radius_m()).depth_m
+        above = masked < level
+        outside += int(above.sum() - above[v0 : v0 + h, u0 : u0 + wd].sum())
+        return w
+
+    sim.render_tracking_depth = both
+    for spec in specs:
+        run_episode(spec, sim)
+    print(
+        f"frames compared: {len(diffs)}; |window - full| depth max {max(diffs, default=0):.2e} m, "
+        f"median of frame maxima {statistics.median(diffs) if diffs else 0:.2e} m; frames whose "
+        f"object mask differs: {flips}; object pixels outside the window: {outside}"
+    )
 
 
 if __name__ == "__main__":
