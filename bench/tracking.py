@@ -186,8 +186,9 @@ def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResu
 def compare_frames(sim, specs: list, window: Callable[[], DepthImage]) -> None:
     """Every tracking frame rendered both ways (window and full image) in the same state:
     how far the window's pixels are from the full image's window, whether the object mask
-    (the tracker's threshold) differs, and whether any object pixel (pusher masked) of the
-    full image lies outside the window."""
+    (the tracker's threshold) differs, and how many pixels of the full image above the floor
+    lie outside the window once the pusher is masked (object pixels the window would miss, or
+    pusher pixels the mask leaves)."""
     diffs: list[float] = []
     flips = outside = 0
 
@@ -213,7 +214,8 @@ def compare_frames(sim, specs: list, window: Callable[[], DepthImage]) -> None:
     print(
         f"frames compared: {len(diffs)}; |window - full| depth max {max(diffs, default=0):.2e} m, "
         f"median of frame maxima {statistics.median(diffs) if diffs else 0:.2e} m; frames whose "
-        f"object mask differs: {flips}; object pixels outside the window: {outside}"
+        f"object mask differs: {flips}; pixels above the floor outside the window, pusher masked: "
+        f"{outside}"
     )
 
 
