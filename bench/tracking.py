@@ -6,8 +6,10 @@
 
 A strided slice of the job's own grid (`bench/episode_profile.job_specs`: every object, both
 pusher frictions, both Izz scales) on one floor `mu`; every episode is run once per camera
-rate in `--fps` (vision) and once with `rotation_source=oracle` (`--oracle`), the variants of
-one episode back to back so that the machine's load hits them alike. Watching never changes
+rate in `--fps` (vision), once per rate > 0 with full-image tracking frames (`--full-frames`:
+the cost before the engines' window renders) and once with `rotation_source=oracle`
+(`--oracle`), the variants of one episode back to back so that the machine's load hits them
+alike. Watching never changes
 the physics (frames hang on the protocol's checks), so the variants differ only in what was
 measured and in what the estimator then chose.
 
@@ -15,7 +17,10 @@ Per rate: pushes, the share of pushes turning > 1 deg whose measured rotation ha
 sign, the number of "aliased" pushes (measured off the true rotation by > 10 deg: a wrong
 symmetric basin), the worst |measured - true| rotation, frames per push, the mean CoM error,
 and the episode's CPU time (`time.process_time`, so that other load on a shared machine does
-not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals).
+not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals);
+then per variant the tracking renders' mean CPU time and size; with `--full-frames` how far
+the measured rotations of window and full frames are apart; with `--compare-frames` a
+pixel-level comparison of window and full frames over every frame of a further run.
 """
 
 from __future__ import annotations
@@ -25,13 +30,18 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
+
+import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs  # noqa: E402
 
-from comexp.episode import EpisodeResult, run_episode  # noqa: E402
+from comexp.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
+from comexp.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
+from comexp.scene import DepthImage  # noqa: E402
 from comexp.simulator import make_simulator  # noqa: E402
 
 ALIAS_DEG = 10.0
@@ -57,6 +67,18 @@ def summarise(label: str, results: list[EpisodeResult], walls: list[float], base
     )
 
 
+def _timed(render: Callable[[], DepthImage], log: list[tuple[float, int]]):
+    """`render`, logging each call's CPU time and pixel count."""
+
+    def timed() -> DepthImage:
+        t = time.process_time()
+        img = render()
+        log.append((time.process_time() - t, img.depth_m.size))
+        return img
+
+    return timed
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="planar")
@@ -65,6 +87,18 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=48)
     ap.add_argument("--fps", default="0,10,15,30", help="camera rates (vision), 0 first")
     ap.add_argument("--oracle", action="store_true", help="also rotation_source=oracle")
+    ap.add_argument(
+        "--full-frames",
+        action="store_true",
+        help="also every rate > 0 with full-image tracking frames (render_depth), as before "
+        "the engines' window renders",
+    )
+    ap.add_argument(
+        "--compare-frames",
+        action="store_true",
+        help="then run every episode once more at the last rate, rendering each tracking frame "
+        "as window and as full image, and compare their pixels",
+    )
     args = ap.parse_args()
     rates = [float(f) for f in args.fps.split(",")]
     if rates[0] != 0.0:
@@ -76,16 +110,27 @@ def main() -> None:
     sim = make_simulator(args.backend, **opts)
     run_episode(specs[0], sim)  # warm-up (JIT, renderer)
     variants: list[tuple[str, dict]] = [(f"{f:g} fps", {"camera_fps": f}) for f in rates]
+    if args.full_frames:
+        variants += [(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
     if args.oracle:
         variants.append(("oracle", {}))
     results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
     walls: dict[str, list[float]] = {v: [] for v, _ in variants}
+    window = sim.render_tracking_depth
+    renders: dict[str, list[tuple[float, int]]] = {v: [] for v, _ in variants}
     t0 = time.perf_counter()
     for spec in specs:
+        # untimed: MuJoCo creates a new object geometry's renderer (~70 ms) on its first
+        # render, which would otherwise be charged to whichever variant runs first
+        sim.build(build_scene(spec))
+        sim.render_depth()
         for label, change in variants:
             s = replace(spec, **change)
             if label == "oracle":
                 s = replace(s, estimator=replace(s.estimator, rotation_source="oracle"))
+            # "full": tracking frames through the full image (the hook's default)
+            render = sim.render_depth if label.endswith("full") else window
+            sim.render_tracking_depth = _timed(render, renders[label])
             t = time.process_time()  # CPU time: the machine's other load does not count
             results[label].append(run_episode(s, sim))
             walls[label].append(time.process_time() - t)
@@ -101,6 +146,77 @@ def main() -> None:
     base = walls[variants[0][0]]
     for label, _ in variants:
         summarise(label, results[label], walls[label], base)
+    for label, _ in variants:
+        if renders[label]:
+            ms = 1e3 * statistics.fmean(t for t, _ in renders[label])
+            px = statistics.fmean(n for _, n in renders[label])
+            print(
+                f"{label}: {len(renders[label])} tracking renders, {ms:.2f} ms CPU, "
+                f"{px:.0f} px each"
+            )
+    for label, _ in variants:
+        if label.endswith("full"):
+            compare_results(label, results[label.replace("full", "fps")], results[label])
+    if args.compare_frames:
+        compare_frames(sim, [replace(s, camera_fps=rates[-1]) for s in specs], window)
+
+
+def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResult]) -> None:
+    """Window vs full-image tracking frames, episode by episode: over the pushes both chose
+    alike (same contact and direction), the largest difference in measured rotation; and how
+    many episodes chose a different push somewhere (a measured rotation moved a decision)."""
+    worst, diverged = 0.0, 0
+    for a, b in zip(win, full, strict=True):
+        for p, q in zip(a.pushes, b.pushes, strict=False):
+            if (p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y) != (
+                q.contact_x_cm,
+                q.contact_y_cm,
+                q.dir_x,
+                q.dir_y,
+            ):
+                diverged += 1
+                break
+            worst = max(worst, abs(p.rotation_deg - q.rotation_deg))
+    print(
+        f"{label} vs window: max |rotation difference| {worst:.2e} deg over the pushes chosen "
+        f"alike; {diverged} of {len(win)} episodes chose a different push"
+    )
+
+
+def compare_frames(sim, specs: list, window: Callable[[], DepthImage]) -> None:
+    """Every tracking frame rendered both ways (window and full image) in the same state:
+    how far the window's pixels are from the full image's window, whether the object mask
+    (the tracker's threshold) differs, and how many pixels of the full image above the floor
+    lie outside the window once the pusher is masked (object pixels the window would miss, or
+    pusher pixels the mask leaves)."""
+    diffs: list[float] = []
+    flips = outside = 0
+
+    def both() -> DepthImage:
+        nonlocal flips, outside
+        w, f = window(), sim.render_depth()
+        fc, wc = f.camera, w.camera
+        u0, v0 = round(fc.cx_px - wc.cx_px), round(fc.cy_px - wc.cy_px)
+        h, wd = w.depth_m.shape
+        part = f.depth_m[v0 : v0 + h, u0 : u0 + wd]
+        diffs.append(float(np.max(np.abs(w.depth_m - part))))
+        level = fc.position_m[2] - MIN_HEIGHT_M
+        flips += bool(np.any((w.depth_m < level) != (part < level)))
+        xy = sim._pusher_xy()
+        masked = mask_pusher(f, (float(xy[0]), float(xy[1])), sim._pusher_radius_m()).depth_m
+        above = masked < level
+        outside += int(above.sum() - above[v0 : v0 + h, u0 : u0 + wd].sum())
+        return w
+
+    sim.render_tracking_depth = both
+    for spec in specs:
+        run_episode(spec, sim)
+    print(
+        f"frames compared: {len(diffs)}; |window - full| depth max {max(diffs, default=0):.2e} m, "
+        f"median of frame maxima {statistics.median(diffs) if diffs else 0:.2e} m; frames whose "
+        f"object mask differs: {flips}; pixels above the floor outside the window, pusher masked: "
+        f"{outside}"
+    )
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ import importlib
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -82,7 +82,8 @@ class Frame:
 
     The pusher may be in it: the engines render their pusher, touching the object's side.
     Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
-    tracker can mask it (`comexp.perception.mask_pusher`).
+    tracker can mask it (`comexp.perception.mask_pusher`). On the engines `image` is only the
+    window around the object (`object_window_px`); its camera model says where it lies.
     """
 
     image: DepthImage
@@ -174,7 +175,10 @@ class Simulator(ABC):
 
     def render_tracking_depth(self) -> DepthImage:
         """The depth image of a tracking frame taken during a push; an engine may override it
-        with a cheaper renderer (a crop, a lower resolution) that keeps the camera model."""
+        with a cheaper renderer that keeps the camera's projection: the engines render only
+        the window of the image the object can cover (`object_window_px`), returned with the
+        camera model of that window (`crop_camera`), so its pixels map to the same world points
+        as the full image's."""
         return self.render_depth()
 
     def _engine_failure(self) -> PushStatus | None:
@@ -353,6 +357,62 @@ class Simulator(ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def object_window_px(
+    camera: CameraModel,
+    outline_m: np.ndarray,
+    height_m: float,
+    state: ObjectState,
+    margin_px: int = 2,
+) -> tuple[int, int, int, int] | None:
+    """The window (u0, v0, width, height) of the image that holds every pixel the object can
+    cover, `margin_px` wider each side, clipped to the image; None when it is off the image.
+
+    Why it is enough: the object is a union of convex prisms, so its image lies inside the
+    convex hull of the projections of its 2 n corners (bottom and top outline), placed by the
+    full 3-D state (tilted or lifted objects included). Tracking frames need only this window
+    (`Simulator.render_tracking_depth`): the pusher is masked away anyway.
+    """
+    outline = np.asarray(outline_m, dtype=float)
+    n = len(outline)
+    local = np.zeros((2 * n, 3))
+    local[:, :2] = np.concatenate([outline, outline])
+    local[n:, 2] = height_m
+    cr, sr = math.cos(state.roll_rad), math.sin(state.roll_rad)
+    cp, sp = math.cos(state.pitch_rad), math.sin(state.pitch_rad)
+    cy, sy = math.cos(state.yaw_rad), math.sin(state.yaw_rad)
+    rot = np.array(  # ZYX: R = Rz(yaw) Ry(pitch) Rx(roll), the engines' convention
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+    world = local @ rot.T + np.asarray(state.position_m, dtype=float)
+    uv = camera.world_to_pixel(world[:, 0], world[:, 1], world[:, 2])
+    u0 = max(int(np.floor(uv[:, 0].min())) - margin_px, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + margin_px, camera.width_px - 1)
+    v0 = max(int(np.floor(uv[:, 1].min())) - margin_px, 0)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + margin_px, camera.height_px - 1)
+    if u1 < u0 or v1 < v0:
+        return None
+    return u0, v0, u1 - u0 + 1, v1 - v0 + 1
+
+
+def crop_camera(
+    camera: CameraModel, u0: int, v0: int, width_px: int, height_px: int
+) -> CameraModel:
+    """The camera model of the window of `camera`'s image whose top-left pixel is (u0, v0):
+    the same camera (pose, focal lengths), the principal point moved by the offset, so that
+    pixel (u, v) of the window back-projects to the world point of pixel (u0 + u, v0 + v)."""
+    return replace(
+        camera,
+        width_px=width_px,
+        height_px=height_px,
+        cx_px=camera.cx_px - u0,
+        cy_px=camera.cy_px - v0,
+    )
 
 
 def at_rest(state: ObjectState, s: SimSettings) -> bool:

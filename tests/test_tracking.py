@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sqlite3
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -172,3 +173,97 @@ def test_an_older_schema_is_refused_in_one_line(tmp_path):
     msg = str(info.value)
     assert f"schema version 3, this comexp writes {SCHEMA_VERSION}" in msg and "\n" not in msg
     assert SCHEMA_VERSION == 4
+
+
+def _tilt(sim, pose: Pose2D, tilt_deg: float) -> None:
+    """Put the object at `pose`, tilted about world x and lifted by 5 mm (engine state only:
+    a pose no push reaches on purpose, the hardest case for the tracking window)."""
+    a = math.radians(tilt_deg)
+    if sim.name == "pybullet":
+        pb = sys.modules["comexp.backends.pybullet_sim"].pb
+        com, _ = pb.getBasePositionAndOrientation(sim._object, physicsClientId=sim._cid)
+        quat = pb.getQuaternionFromEuler([a, 0.0, pose.yaw_rad])
+        rot = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
+        pos = np.array([pose.x_m, pose.y_m, 0.005]) + rot @ sim._com_local
+        pb.resetBasePositionAndOrientation(sim._object, pos, quat, physicsClientId=sim._cid)
+    else:
+        q = sim._obj_qadr
+        cy, sy = math.cos(pose.yaw_rad / 2), math.sin(pose.yaw_rad / 2)
+        cx, sx = math.cos(a / 2), math.sin(a / 2)
+        sim.data.qpos[q : q + 3] = (pose.x_m, pose.y_m, 0.005)
+        sim.data.qpos[q + 3 : q + 7] = (cy * cx, cy * sx, sy * sx, sy * cx)  # Rz(yaw) Rx(a)
+    assert sim.object_state().tilt_deg == pytest.approx(tilt_deg, abs=1e-6)
+
+
+@pytest.mark.parametrize("backend", ["pybullet", "mujoco"])
+def test_engine_tracking_frames_are_the_object_window_of_the_full_image(backend):
+    """`render_tracking_depth` renders only the window around the object (an off-centre
+    frustum): its pixels are the full image's window (pybullet to float rounding, MuJoCo to
+    the depth buffer's precision: measured 2.4e-7 / 4.4e-6 m), it holds the whole object
+    (also tilted and lifted, at the image's edge where the window is clipped) and the pusher
+    where it overlaps, and it costs a few % of the pixels. The full image is unchanged."""
+    tol_m = {"pybullet": 1e-6, "mujoco": 2e-5}[backend]
+    sim = make_simulator(backend, floor_friction="model")
+    try:
+        cases = [
+            (Pose2D(0.05, -0.03, 0.4), 0.0, (0.05 - 0.04 * math.cos(0.4) - 0.006, -0.045)),
+            (Pose2D(-0.275, 0.275, -1.0), 0.0, None),  # cut by the image's corner
+            (Pose2D(0.12, 0.08, 2.0), 12.0, None),
+        ]
+        for pose, tilt_deg, pusher_xy in cases:
+            sim.build(replace(build_scene(box_spec(backend)), initial_pose=pose))
+            if tilt_deg:
+                _tilt(sim, pose, tilt_deg)
+            if pusher_xy is not None:
+                sim._place_pusher(pusher_xy)
+            full = sim.render_depth()
+            crop = sim.render_tracking_depth()
+            fc, cc = full.camera, crop.camera
+            u0, v0 = round(fc.cx_px - cc.cx_px), round(fc.cy_px - cc.cy_px)
+            h, w = crop.depth_m.shape
+            assert (cc.width_px, cc.height_px) == (w, h)
+            assert (cc.fx_px, cc.fy_px, cc.position_m) == (fc.fx_px, fc.fy_px, fc.position_m)
+            assert w * h < 0.1 * fc.width_px * fc.height_px
+            window = full.depth_m[v0 : v0 + h, u0 : u0 + w]
+            assert np.max(np.abs(crop.depth_m - window)) < tol_m
+            above = full.depth_m < fc.position_m[2] - 0.004
+            assert np.array_equal(
+                crop.depth_m < cc.position_m[2] - 0.004, above[v0 : v0 + h, u0 : u0 + w]
+            )
+            if pusher_xy is None:  # nothing of the object outside the window
+                assert above.sum() == above[v0 : v0 + h, u0 : u0 + w].sum() > 100
+            else:  # the pusher is in the window where it touches the object
+                assert (
+                    object_mask(crop).sum() > object_mask(mask_pusher(crop, pusher_xy, 0.005)).sum()
+                )
+            if pose.x_m < -0.15:  # clipped at the image's top-left corner
+                assert (u0, v0) == (0, 0)
+            assert np.array_equal(sim.render_depth().depth_m, full.depth_m)
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize("backend", ["pybullet", "mujoco"])
+def test_engine_tracking_frames_have_the_method_s_geometry(backend):
+    """Through the window's camera model a tracking frame is metric and in the method's frames
+    (docs/method.md): an object at +y lies in the image's upper half (rows grow downward), and
+    a CCW turn about +z is tracked as a positive yaw, at the true position."""
+    sim = make_simulator(backend, floor_friction="model")
+    try:
+        sim.build(replace(build_scene(box_spec(backend)), initial_pose=Pose2D(0.0, 0.0, 0.0)))
+        perc, obs0 = perceive_first(sim.render_depth())
+        tracker = PoseTracker(perc, obs0)
+        tracker.begin_push()
+        moved = Pose2D(0.03, 0.06, math.radians(25.0))
+        sim.build(replace(build_scene(box_spec(backend)), initial_pose=moved))
+        crop = sim.render_tracking_depth()
+        cy_px = sim._camera_model().cy_px
+        v0 = cy_px - crop.camera.cy_px  # the window's top row in the full image
+        assert v0 + crop.depth_m.shape[0] < cy_px  # +y: above the centre
+        view = observe_boundary(crop, (0.0, 0.0))
+        assert np.allclose(view.centroid_m, (moved.x_m, moved.y_m), atol=1.5e-3)
+        fit = tracker.track(view, 0.1)
+        assert math.degrees(fit.pose.yaw_rad) == pytest.approx(25.0, abs=1.0)
+        assert (fit.pose.x_m, fit.pose.y_m) == pytest.approx((moved.x_m, moved.y_m), abs=1.5e-3)
+    finally:
+        sim.close()
