@@ -35,19 +35,19 @@ from collections.abc import Sequence
 import numpy as np
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
-from comexp.scene import (
+from comexp.experiment.simulator import (
+    FLOOR_FRICTION_CHOICES,
+    PARK_XY_M,
+    Simulator,
+    pusher_contact_height_m,
+)
+from comexp.method.scene import (
     GRAVITY_M_S2,
     DepthImage,
     ObjectSpec,
     ObjectState,
     SceneSpec,
     SimSettings,
-)
-from comexp.simulator import (
-    FLOOR_FRICTION_CHOICES,
-    PARK_XY_M,
-    Simulator,
-    pusher_contact_height_m,
 )
 
 

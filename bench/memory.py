@@ -185,7 +185,7 @@ def run_job(
 ) -> dict[str, Any]:
     from episode_profile import job_specs, strided
 
-    from comexp.db import ResultsDB
+    from comexp.results.store import ResultsDB
     from comexp.workers.pool import EpisodePool, ensure_ray, run_and_store
 
     specs = job_specs(backend, floor, speed)

@@ -20,9 +20,9 @@ import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from comexp.episode import EpisodeSpec, EstimatorSettings, run_episode  # noqa: E402
-from comexp.objects import builtin_objects, com_points  # noqa: E402
-from comexp.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeSpec, EstimatorSettings, run_episode  # noqa: E402
+from comexp.experiment.objects import builtin_objects, com_points  # noqa: E402
+from comexp.experiment.simulator import make_simulator  # noqa: E402
 
 READINGS: dict[str, dict] = {
     "default": {},
@@ -133,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def pose_synthetic(n_images: int = 20) -> int:
     """Vision's yaw error on exact ray-cast images: random moves of up to 10 cm and 0.5 rad."""
-    from comexp.perception import PoseTracker, observe, perceive_first, render_prism_depth
-    from comexp.scene import CameraSpec, Pose2D
+    from comexp.method.perception import PoseTracker, observe, perceive_first, render_prism_depth
+    from comexp.method.scene import CameraSpec, Pose2D
 
     cam = CameraSpec().model()
     shapes = {

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from shapely.geometry import LineString, Point
 
-from comexp.objects import (
+from comexp.experiment.objects import (
     ObjectDef,
     _name_key,
     builtin_objects,
@@ -34,8 +34,8 @@ from comexp.objects import (
     load_builtin,
     to_object_spec,
 )
-from comexp.scene import FloorSpec, PusherSpec, SceneSpec
-from comexp.simulator import PushStatus, Simulator, contact_push, make_simulator
+from comexp.experiment.simulator import PushStatus, Simulator, contact_push, make_simulator
+from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
 
 SPEED_M_S = 0.4
 PUSH_LENGTH_M = 0.03

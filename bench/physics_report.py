@@ -22,9 +22,9 @@ import numpy as np
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from comexp.geometry import box_object  # noqa: E402
-from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec  # noqa: E402
-from comexp.simulator import PushOutcome, Simulator, contact_push, make_simulator  # noqa: E402
+from comexp.experiment.simulator import PushOutcome, Simulator, contact_push, make_simulator  # noqa: E402
+from comexp.method.geometry import box_object  # noqa: E402
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec  # noqa: E402
 
 PUSH_LENGTH_M = 0.03
 FLOORS = {
@@ -114,8 +114,8 @@ def diagonal_slide(sim: Simulator, mu_x: float, mu_y: float, angle_deg: float) -
 
 def objects_at_rest(sim: Simulator) -> list[tuple[str, ...]]:
     """Tilt and residual motion of every built-in object left at rest for 0.5 s."""
-    from comexp.episode import EpisodeSpec, build_scene
-    from comexp.objects import builtin_objects, com_points
+    from comexp.experiment.episode import EpisodeSpec, build_scene
+    from comexp.experiment.objects import builtin_objects, com_points
 
     rows = []
     for obj in builtin_objects():

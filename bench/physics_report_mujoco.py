@@ -22,10 +22,10 @@ import mujoco
 import numpy as np
 
 from comexp.backends.mujoco_sim import DEFAULT_CONTACT, NAIVE_CONTACT, MujocoSimulator
-from comexp.geometry import box_object, signed_area
-from comexp.objects import builtin_objects, com_points, load_builtin, to_object_spec
-from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
-from comexp.simulator import contact_push
+from comexp.experiment.objects import builtin_objects, com_points, load_builtin, to_object_spec
+from comexp.experiment.simulator import contact_push
+from comexp.method.geometry import box_object, signed_area
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
 
 
 def slide(sim: MujocoSimulator, mu_xy: tuple[float, float], axis: int) -> tuple[float, float]:

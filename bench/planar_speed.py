@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from comexp.backends.planar_sim import PlanarSimulator
-from comexp.objects import com_point, load_builtin, to_object_spec
-from comexp.scene import FloorSpec, SceneSpec
-from comexp.simulator import contact_push
+from comexp.experiment.objects import com_point, load_builtin, to_object_spec
+from comexp.experiment.simulator import contact_push
+from comexp.method.scene import FloorSpec, SceneSpec
 
 OBJECTS = ("rect_8x5", "l_shape", "triangle_right_11x7")
 FLOORS = ((0.1, 0.1), (1.0, 1.0), (0.1, 1.0))

@@ -15,9 +15,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 
-from comexp.episode import EpisodeSpec, run_episode  # noqa: E402
-from comexp.objects import builtin_objects, com_points  # noqa: E402
-from comexp.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeSpec, run_episode  # noqa: E402
+from comexp.experiment.objects import builtin_objects, com_points  # noqa: E402
+from comexp.experiment.simulator import make_simulator  # noqa: E402
 
 
 def main() -> None:

@@ -31,8 +31,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs  # noqa: E402
 
-from comexp.episode import EpisodeResult, run_episode  # noqa: E402
-from comexp.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeResult, run_episode  # noqa: E402
+from comexp.experiment.simulator import make_simulator  # noqa: E402
 
 ALIAS_DEG = 10.0
 

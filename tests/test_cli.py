@@ -29,7 +29,7 @@ SMALL = ["grid.coms_per_object=1", "grid.izz_scales=[1]", "pusher.mu=[1.0]"]
 
 def _command() -> list[str]:
     script = Path(sys.executable).with_name("comexp")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "comexp.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "comexp.cli.run"]
 
 
 def _env(**extra: str) -> dict[str, str]:
@@ -379,7 +379,7 @@ def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
 def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path) -> None:
     """`backend=planar` behind the same command line: real physics, perception and estimator,
     stored with the planar physics identity."""
-    from comexp.db import ResultsDB
+    from comexp.results.store import ResultsDB
 
     r = comexp(
         tmp_path,

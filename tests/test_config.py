@@ -13,15 +13,15 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
-from comexp import config as config_module
-from comexp.config import (
+from comexp.experiment import config as config_module
+from comexp.experiment.config import (
     ConfigError,
     check_db_location,
     prepare_job,
     sqlite_path,
     to_experiment,
 )
-from comexp.episode import EstimatorSettings
+from comexp.experiment.episode import EstimatorSettings
 
 TRIANGLE = """\
 name: my_tri

@@ -17,10 +17,10 @@ from functools import cache
 import numpy as np
 import pytest
 
-from comexp.geometry import box_object, prism_object
-from comexp.objects import builtin_object_names, load_builtin, to_object_spec
-from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PushCommand, SceneSpec
-from comexp.simulator import PushStatus, contact_push, make_simulator
+from comexp.experiment.objects import builtin_object_names, load_builtin, to_object_spec
+from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
+from comexp.method.geometry import box_object, prism_object
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PushCommand, SceneSpec
 
 BACKENDS = ["planar", "pybullet", "mujoco"]
 PUSH_LENGTH_M = 0.03
@@ -331,7 +331,7 @@ THROUGH_COM = [
 
 
 def _builtin_spec(name: str, k: int, mu_pusher: float = 1.0):
-    from comexp.objects import com_points
+    from comexp.experiment.objects import com_points
 
     obj = load_builtin(name)
     return to_object_spec(obj, com_points(obj, 2)[k], 1.0, mu_pusher)
@@ -508,8 +508,8 @@ def test_many_sided_object_at_rest_settles_at_once(sim):
     pybullet keeps 4 of its bottom corners in the floor contact and rocks it by ~0.02 deg; the
     old 3D settle test then waited 0.83 s here, and 5 s (not_settled) in longer episodes.
     """
-    from comexp.episode import EpisodeSpec, build_scene
-    from comexp.objects import builtin_objects, com_points
+    from comexp.experiment.episode import EpisodeSpec, build_scene
+    from comexp.experiment.objects import builtin_objects, com_points
 
     obj = next(o for o in builtin_objects() if o.name == "ellipse_12x7")
     spec = EpisodeSpec.for_object(

@@ -16,8 +16,8 @@ import pytest
 from sqlalchemy import create_engine, inspect
 from sqlalchemy.dialects import postgresql
 
-from comexp.db import EPISODES, EpisodeFilter, ResultsDB, episode_key
-from comexp.episode import EpisodeResult, EpisodeSpec, EstimatorSettings, PushRecord
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec, EstimatorSettings, PushRecord
+from comexp.results.store import EPISODES, EpisodeFilter, ResultsDB, episode_key
 
 EPISODE_COLUMNS = [
     "id",
@@ -301,7 +301,7 @@ WRITER = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_db import make_result
     from pathlib import Path
-    from comexp.db import ResultsDB
+    from comexp.results.store import ResultsDB
     go = Path({path!r} + ".go")
     Path({path!r} + ".ready-" + sys.argv[1]).parent.mkdir(parents=True, exist_ok=True)
     Path({path!r} + ".ready-" + sys.argv[1]).touch()
@@ -397,7 +397,7 @@ def test_readonly_open_of_wal_database_in_unwritable_directory(tmp_path: Path) -
     code = textwrap.dedent(
         f"""
         import sqlite3
-        from comexp.db import ResultsDB
+        from comexp.results.store import ResultsDB
         try:  # plain mode=ro must fail here, else this test would not test the fallback
             sqlite3.connect("file:{path}?mode=ro", uri=True).execute("select 1 from episodes")
             print("plain-ok")

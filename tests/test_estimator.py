@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.estimator import (
+from comexp.method.estimator import (
     ComEstimator,
     EstimatorSettings,
     ObservedPush,

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
 FACTORY = "test_workers:FakeSimulator"

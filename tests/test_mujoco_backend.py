@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import shapely.geometry
 
-from comexp.geometry import box_object, signed_area
-from comexp.objects import com_points, load_builtin, to_object_spec
-from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
-from comexp.simulator import PushStatus, contact_push
+from comexp.experiment.objects import com_points, load_builtin, to_object_spec
+from comexp.experiment.simulator import PushStatus, contact_push
+from comexp.method.geometry import box_object, signed_area
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
 
 mujoco_sim = pytest.importorskip("comexp.backends.mujoco_sim")
 

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from shapely.geometry import Point
 
-from comexp import geometry
-from comexp.objects import (
+from comexp.experiment.objects import (
     MIN_WIDTH_CM,
     ObjectDef,
     builtin_object_names,
@@ -20,6 +19,7 @@ from comexp.objects import (
     load_builtin,
     to_object_spec,
 )
+from comexp.method import geometry
 
 L_OUTLINE = [[0, 0], [10, 0], [10, 4], [4, 4], [4, 8], [0, 8]]
 
@@ -172,7 +172,7 @@ def test_com_points_depend_on_the_name_not_on_process_hash():
 
     o = load_builtin("l_shape")
     code = (
-        "from comexp.objects import load_builtin, com_points;"
+        "from comexp.experiment.objects import load_builtin, com_points;"
         "print(repr(com_points(load_builtin('l_shape'), 2)))"
     )
     out = subprocess.run(
@@ -258,8 +258,8 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
     as the sampler allows (a corner of the footprint shrunk by the 1 cm margin), pushed
     straight through the CoM from every reachable side. Tipping needs roughly
     mu * (height / 2) > distance from the CoM to the leading edge."""
-    from comexp.scene import FloorSpec, PusherSpec, SceneSpec
-    from comexp.simulator import PushStatus, contact_push, make_simulator
+    from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
+    from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
 
     if backend == "mujoco":
         # Known, documented in docs/physics_mujoco.md ("Tipping of adversarial CoMs", "Root
@@ -295,8 +295,8 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
 def test_every_builtin_object_builds_with_izz_x10(backend):
     """Regression: raising Ixx + Iyy to exactly Izz lost the equality to rounding and MuJoCo
     refused 15% of the Izz x 10 episodes ("inertia must satisfy A + B >= C")."""
-    from comexp.scene import FloorSpec, SceneSpec
-    from comexp.simulator import make_simulator
+    from comexp.experiment.simulator import make_simulator
+    from comexp.method.scene import FloorSpec, SceneSpec
 
     sim = make_simulator(backend)
     try:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.perception import (
+from comexp.method.perception import (
     PerceptionError,
     PoseTracker,
     object_mask,
@@ -18,7 +18,7 @@ from comexp.perception import (
     relative_rotation_deg,
     render_prism_depth,
 )
-from comexp.scene import CameraSpec, DepthImage, Pose2D
+from comexp.method.scene import CameraSpec, DepthImage, Pose2D
 
 CAM = CameraSpec().model()
 H = 0.03

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 from test_cli import FAKE, comexp
 
-from comexp.db import SCHEMA_VERSION, ResultsDB, redact_url
+from comexp.results.store import SCHEMA_VERSION, ResultsDB, redact_url
 
 PASSWORD = "Pw-7f3kQz_s3cret"  # distinctive, so a grep for it cannot match anything else
 USER = "comexp_test"
@@ -276,7 +276,7 @@ def test_missing_driver_is_one_line(tmp_path: Path) -> None:
     """Without psycopg installed: one line naming the extra to install, no traceback."""
     code = (
         "import sys; sys.modules['psycopg'] = None; sys.modules['psycopg2'] = None\n"
-        "from comexp.dbcli import main\n"
+        "from comexp.cli.query import main\n"
         "sys.exit(main(['--db', 'postgresql://u:pw@127.0.0.1:1/x', 'summary']))\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

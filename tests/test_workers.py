@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
 RUNNER = "test_workers:fake_run"

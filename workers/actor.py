@@ -30,10 +30,10 @@ from typing import Any
 
 import ray
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
-DEFAULT_RUNNER = "comexp.episode:run_episode"
-DEFAULT_SIMULATOR_FACTORY = "comexp.simulator:make_simulator"
+DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
+DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.simulator:make_simulator"
 
 
 def import_dotted(path: str) -> Callable[..., Any]:
@@ -206,7 +206,7 @@ class EpisodeWorker:
         if not spec.physics or spec.backend != self.backend:
             return ""
         if self._physics is None:
-            from comexp.simulator import physics_identity
+            from comexp.experiment.simulator import physics_identity
 
             try:
                 self._physics = physics_identity(self.backend, options=self.backend_options)

@@ -31,7 +31,7 @@ from typing import Any
 import ray
 import ray.exceptions as rex
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 from .actor import DEFAULT_RUNNER, DEFAULT_SIMULATOR_FACTORY, RemoteEpisodeWorker, failed_result
 

@@ -53,7 +53,7 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 # 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics; 4: pushes.n_frames
 SCHEMA_VERSION = 4  # 4 also: episodes.camera_fps
@@ -157,7 +157,7 @@ class Episode(Base):
     height_cm: Mapped[float] = mapped_column(Float)
     push_length_cm: Mapped[float] = mapped_column(Float)
     recenter_beyond_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
-    # what determined the physics (comexp.simulator.physics_identity); part of the episode key
+    # what determined the physics (comexp.experiment.simulator.physics_identity); part of the episode key
     physics: Mapped[str] = mapped_column(String(200), default="")
     camera_fps: Mapped[float] = mapped_column(Float, default=0.0)  # tracking frames per second
     w1: Mapped[float | None] = mapped_column(Float, nullable=True)

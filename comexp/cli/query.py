@@ -20,8 +20,7 @@ from typing import Any, NoReturn
 
 from sqlalchemy.exc import SQLAlchemyError
 
-from comexp.db import EPISODES, EpisodeFilter, ResultsDB
-from comexp.reports import (
+from comexp.results.reports import (
     condition_tables,
     paper_markdown,
     paper_tables,
@@ -30,6 +29,7 @@ from comexp.reports import (
     table_markdown,
     tables_csv,
 )
+from comexp.results.store import EPISODES, EpisodeFilter, ResultsDB
 
 DEFAULT_DB = os.path.join("results", "comexp.db")
 EPISODE_DEFAULT_COLUMNS = (
@@ -287,7 +287,7 @@ def _run(args: argparse.Namespace, out: Any) -> None:
             rows = db.episodes(flt, columns=cols, limit=args.limit)
             out.write(_rows_out(rows, cols, args.format))
         elif args.command == "plot":
-            from comexp.plots import make_plots
+            from comexp.results.plots import make_plots
 
             for path in make_plots(db, args.out, flt):
                 out.write(f"{path}\n")
@@ -308,7 +308,7 @@ def _check_image_path(path: str) -> None:
 
 
 def _show(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
-    from comexp.plots import plot_episode
+    from comexp.results.plots import plot_episode
 
     row = db.episode(args.episode_id)
     plot_episode(row, db.pushes(args.episode_id), args.out)

@@ -3,7 +3,7 @@
 The dataclasses below are registered in Hydra's ConfigStore as the schema of `conf/config.yaml`,
 so a wrong *type* (``speed=abc``) is rejected by Hydra while composing. Wrong *values*
 (negative speed, unknown object, unwritable database, ...) are caught by `prepare_job`, which
-the CLI runs before Hydra creates any output folder (see `comexp.cli`): bad input must cost
+the CLI runs before Hydra creates any output folder (see `comexp.cli.run`): bad input must cost
 nothing and leave nothing behind.
 """
 
@@ -25,7 +25,7 @@ import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
-from comexp.episode import EstimatorSettings
+from comexp.experiment.episode import EstimatorSettings
 
 FLOOR_KINDS = ("iso", "aniso")
 ANISO_ORIENTATIONS = ("xy", "yx")
@@ -49,7 +49,7 @@ class BackendConfig:
     floor_friction: str = "model"
 
     def options(self) -> dict[str, str]:
-        """The simulator's constructor options (`comexp.simulator.make_simulator`)."""
+        """The simulator's constructor options (`comexp.experiment.simulator.make_simulator`)."""
         return {} if self.name == "planar" else {"floor_friction": self.floor_friction}
 
 
@@ -119,8 +119,8 @@ class ExecutionConfig:
     # An episode still running after this is failed with `failure="timeout"` and its worker
     # carries on (episodes take ~0.1-0.3 s; quasi-static ones a few s): catches hangs only.
     episode_timeout_s: float = 120.0
-    runner: str = "comexp.episode:run_episode"
-    simulator_factory: str = "comexp.simulator:make_simulator"
+    runner: str = "comexp.experiment.episode:run_episode"
+    simulator_factory: str = "comexp.experiment.simulator:make_simulator"
 
 
 _UNIT_SUFFIX = re.compile(r"_(deg|rad|px|cm|mm|m|s|ms|kg)$")
@@ -175,7 +175,7 @@ EstimatorConfig = dataclasses.make_dataclass(
 )
 EstimatorConfig.__doc__ = (
     "Estimator knobs, named as in the paper (units stripped): mapped field by field onto "
-    "`comexp.episode.EstimatorSettings`."
+    "`comexp.experiment.episode.EstimatorSettings`."
 )
 
 
@@ -259,13 +259,13 @@ def _check_list(key: str, values: Sequence[float], *, minimum: float, strict: bo
 
 def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     """Value checks that a schema cannot express; returns the estimator settings."""
-    from comexp.simulator import backend_names
+    from comexp.experiment.simulator import backend_names
 
     if cfg.backend.name not in backend_names():
         raise ConfigError(
             f"unknown backend {cfg.backend.name!r} (choose one of: {', '.join(backend_names())})"
         )
-    from comexp.simulator import FLOOR_FRICTION_CHOICES
+    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES
 
     if cfg.backend.floor_friction not in FLOOR_FRICTION_CHOICES:
         raise ConfigError(
@@ -506,8 +506,9 @@ def load_object_mapping(repo: Any, name: str) -> dict[str, Any]:
 
 
 def load_objects(repo: Any, names: Sequence[str] | None) -> dict[str, Any]:
-    """`comexp.objects.ObjectDef` per name (all objects in the group when `names` is None)."""
-    from comexp.objects import ObjectDef
+    """`comexp.experiment.objects.ObjectDef` per name (all objects in the group when `names`
+    is None)."""
+    from comexp.experiment.objects import ObjectDef
 
     available = available_objects(repo)
     if names is None:

@@ -1,6 +1,6 @@
 """The one simulator interface that perception, the estimator and the workers use.
 
-A backend builds a scene from engine-independent dataclasses (`comexp.scene`), renders the
+A backend builds a scene from engine-independent dataclasses (`comexp.method.scene`), renders the
 top-down depth image, executes straight pushes and lets the object come to rest. The true
 object state is for evaluation, tests and failure detection only; the estimator never reads it
 unless `rotation_source=oracle` is asked for.
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from comexp.scene import (
+from comexp.method.scene import (
     CameraModel,
     DepthImage,
     ObjectState,
@@ -82,7 +82,7 @@ class Frame:
 
     The pusher may be in it: the engines render their pusher, touching the object's side.
     Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
-    tracker can mask it (`comexp.perception.mask_pusher`).
+    tracker can mask it (`comexp.method.perception.mask_pusher`).
     """
 
     image: DepthImage

@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from comexp import paper
-from comexp.db import EpisodeFilter, ResultsDB, canonical_json
-from comexp.estimator import EstimatorSettings
+from comexp.results import paper
+from comexp.results.store import EpisodeFilter, ResultsDB, canonical_json
+from comexp.method.estimator import EstimatorSettings
 
 # Every column that can change a result. Adding one (e.g. a physics version) here makes every
 # table, report, plot and the bench tell its values apart.

@@ -1,7 +1,7 @@
 """Figures in the spirit of the paper's Figs. 3-5, drawn from the results database, plus the
 Izz figure, a backend comparison and one episode drawn in its object's frame.
 
-Every figure groups episodes with `comexp.reports.group_episodes` (the one grouping rule) and
+Every figure groups episodes with `comexp.results.reports.group_episodes` (the one grouping rule) and
 pools only the columns its caption names:
 
 - `error_per_object_<condition>.png` (Figs. 3, 4): per object and all objects, one box per
@@ -37,8 +37,8 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from comexp.db import EpisodeFilter, ResultsDB  # noqa: E402
-from comexp.reports import (  # noqa: E402
+from comexp.results.store import EpisodeFilter, ResultsDB  # noqa: E402
+from comexp.results.reports import (  # noqa: E402
     ALL_OBJECTS,
     EPISODE_COLUMNS,
     FRICTION_COLUMNS,
@@ -353,10 +353,10 @@ def reconstruct_regions(
     one the episode's first image gave, so sizes can differ from `region_px` by a few pixels."""
     import shapely
 
-    from comexp.estimator import EstimatorSettings, update_region
-    from comexp.perception import hull_region
-    from comexp.results import _from_json
-    from comexp.scene import CameraSpec
+    from comexp.method.estimator import EstimatorSettings, update_region
+    from comexp.method.perception import hull_region
+    from comexp.results.api import _from_json
+    from comexp.method.scene import CameraSpec
 
     cam = CameraSpec()
     pixel_m = cam.model().pixel_size_m(cam.height_m - float(spec["height_cm"]) / 100.0)

@@ -27,8 +27,8 @@ import shapely
 import yaml
 from shapely.geometry import Point, Polygon
 
-from comexp import geometry
-from comexp.scene import ObjectSpec
+from comexp.method import geometry
+from comexp.method.scene import ObjectSpec
 
 # Validation bounds (documented in docs/objects.md). The camera sees the floor at ~2.8 mm/px,
 # so an object thinner than MIN_WIDTH_CM covers only a dozen pixels across and its rotation is
