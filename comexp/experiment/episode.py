@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from comexp.experiment.simulator import Frame, Simulator, contact_push, wrap_angle
+from comexp.experiment.simulator import Frame, Simulator, contact_push
 from comexp.method.estimator import ComEstimator, EstimatorSettings
 from comexp.method.geometry import prism_object
 from comexp.method.perception import (
@@ -25,7 +25,7 @@ from comexp.method.perception import (
     observe_boundary,
     perceive_first,
 )
-from comexp.method.scene import FloorSpec, Pose2D, PusherSpec, SceneSpec
+from comexp.method.scene import FloorSpec, Pose2D, PusherSpec, SceneSpec, wrap_angle
 
 __all__ = [
     "EpisodeResult",

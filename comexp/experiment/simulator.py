@@ -26,6 +26,7 @@ from comexp.method.scene import (
     PusherSpec,
     SceneSpec,
     SimSettings,
+    wrap_angle,
 )
 
 BACKENDS: dict[str, str] = {
@@ -89,10 +90,6 @@ class Frame:
     t_s: float  # since the start of the push
     pusher_xy_m: tuple[float, float]
     pusher_radius_m: float
-
-
-def wrap_angle(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 def classify_state(

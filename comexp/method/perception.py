@@ -22,6 +22,7 @@ import shapely
 
 from comexp.method.geometry import centroid as polygon_centroid
 from comexp.method.scene import CameraModel, DepthImage, Pose2D
+from comexp.method.scene import wrap_angle as _wrap  # the tracker's name for it
 
 MIN_HEIGHT_M = 0.004  # anything this far above the floor plane is object
 NORMAL_HALF_WINDOW_PX = 4  # contour pixels on each side used to fit a local tangent line
@@ -533,10 +534,6 @@ def _median(d: np.ndarray) -> float:
         return float(np.partition(d, k)[k])
     p = np.partition(d, (k - 1, k))
     return float(0.5 * (p[k - 1] + p[k]))
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 def relative_rotation_deg(before: Pose2D, after: Pose2D) -> float:
