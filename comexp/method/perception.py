@@ -21,6 +21,7 @@ import numpy as np
 import shapely
 
 from comexp.method.geometry import centroid as polygon_centroid
+from comexp.method.geometry import signed_area
 from comexp.method.scene import CameraModel, DepthImage, Pose2D
 from comexp.method.scene import wrap_angle as _wrap  # the tracker's name for it
 
@@ -68,14 +69,9 @@ class Observation:
         hull = cv2.convexHull(self.points_m.astype(np.float32), clockwise=False)[:, 0, :]
         hull = hull.astype(float)
         # OpenCV's orientation flag refers to its own axes; enforce CCW in the y-up frame.
-        if _signed_area(hull) < 0:
+        if signed_area(hull) < 0:
             hull = hull[::-1]
         return hull
-
-
-def _signed_area(p: np.ndarray) -> float:
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
 def floor_depth_m(camera: CameraModel) -> float:
@@ -160,7 +156,7 @@ def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
     c = max(contours, key=len)[:, 0, :]  # (m, 2) as (u, v)
     cu, cv_ = c[:, 0], c[:, 1]
     contour = cam.pixel_to_world(cu, cv_, img.depth_m[cv_, cu])[:, :2]
-    if _signed_area(contour) < 0:
+    if signed_area(contour) < 0:
         contour = contour[::-1].copy()
     half = NORMAL_HALF_WINDOW_PX if len(contour) > 4 * NORMAL_HALF_WINDOW_PX else 1
     fit = _local_fit(contour, half)
