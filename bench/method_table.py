@@ -21,7 +21,7 @@ import numpy as np
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from comexp.experiment.episode import EpisodeSpec, EstimatorSettings, run_episode  # noqa: E402
-from comexp.experiment.objects import builtin_objects, com_points  # noqa: E402
+from comexp.experiment.objects import com_points, load_objects  # noqa: E402
 from comexp.experiment.simulator import make_simulator  # noqa: E402
 
 READINGS: dict[str, dict] = {
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.pose_synthetic:
         return pose_synthetic()
 
-    objs = builtin_objects()
+    objs = load_objects().values()
     if args.objects:
         objs = [o for o in objs if o.name in args.objects]
     readings = READINGS if args.readings else {"default": {}}

@@ -29,10 +29,8 @@ from shapely.geometry import LineString, Point
 from comexp.experiment.objects import (
     ObjectDef,
     _name_key,
-    builtin_objects,
     com_points,
-    load_builtin,
-    to_object_spec,
+    load_objects,
 )
 from comexp.experiment.simulator import PushStatus, Simulator, contact_push, make_simulator
 from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
@@ -103,7 +101,7 @@ def tipping_check(sim: Simulator, obj: ObjectDef, n_coms: int) -> dict:
     ]
     for kind, com in coms:
         for push in _edge_pushes(obj, com, r_cm):
-            scene = SceneSpec(FloorSpec(1.0, 1.0), to_object_spec(obj, com, 1.0, 1.0))
+            scene = SceneSpec(FloorSpec(1.0, 1.0), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
             sim.build(scene)
             out = _do_push(sim, scene, push)
             n_push += 1
@@ -120,7 +118,7 @@ def slide_check(sim: Simulator, obj: ObjectDef) -> dict:
     r_cm = PusherSpec().radius_m * 100
     # the push through the CoM along the longest-travel edge normal: pick the first one found
     push = _edge_pushes(obj, com, r_cm)[0]
-    scene = SceneSpec(FloorSpec(0.1, 0.1), to_object_spec(obj, com, 1.0, 1.0))
+    scene = SceneSpec(FloorSpec(0.1, 0.1), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
     sim.build(scene)
     start = sim.true_pose()
     slides, status = [], "ok"
@@ -188,7 +186,7 @@ def random_walk_check(sim: Simulator, obj: ObjectDef, trials: int, mu: float) ->
     travel = []
     for t in range(trials):
         com = com_points(obj, trials)[t]
-        scene = SceneSpec(FloorSpec(mu, mu), to_object_spec(obj, com, 1.0, 1.0))
+        scene = SceneSpec(FloorSpec(mu, mu), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
         sim.build(scene)
         status = "ok"
         for _ in range(5):
@@ -211,7 +209,7 @@ def main() -> None:
     ap.add_argument("--height-cm", type=float, default=None, help="override every height")
     ap.add_argument("--walks", type=int, default=10, help="random 5-push walks per object")
     args = ap.parse_args()
-    objs = [load_builtin(n) for n in args.objects] if args.objects else builtin_objects()
+    objs = list(load_objects(args.objects or None).values())
     if args.height_cm is not None:
         objs = [replace(o, height_cm=args.height_cm) for o in objs]
     if args.table:

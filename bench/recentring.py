@@ -16,7 +16,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from comexp.experiment.episode import EpisodeSpec, run_episode  # noqa: E402
-from comexp.experiment.objects import builtin_objects, com_points  # noqa: E402
+from comexp.experiment.objects import com_points, load_objects  # noqa: E402
 from comexp.experiment.simulator import make_simulator  # noqa: E402
 
 
@@ -31,7 +31,7 @@ def main() -> None:
     for recenter in (0.0, 10.0):
         outcomes: collections.Counter[str] = collections.Counter()
         errors, recentred = [], 0
-        for obj in builtin_objects():
+        for obj in load_objects().values():
             for k, com in enumerate(com_points(obj, args.coms)):
                 spec = EpisodeSpec.for_object(
                     obj,

@@ -314,9 +314,9 @@ def test_end_to_end_dynamic_pushing(backend):
 
 
 def test_spec_for_object_copies_the_object_definition():
-    from comexp.experiment.objects import load_builtin
+    from comexp.experiment.objects import load_objects
 
-    obj = load_builtin("l_shape")
+    obj = load_objects(["l_shape"])["l_shape"]
     spec = EpisodeSpec.for_object(
         obj,
         3,

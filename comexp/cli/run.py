@@ -30,8 +30,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from comexp.experiment.config import ConfigError, PreparedJob, prepare_job, yaml_error_line
+from comexp.experiment.config import ConfigError, PreparedJob, prepare_job
 from comexp.experiment.grid import expand_grid
+from comexp.experiment.objects import yaml_error_line
 
 log = logging.getLogger("comexp")
 

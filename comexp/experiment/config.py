@@ -21,16 +21,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
 from comexp.experiment.episode import EstimatorSettings
+from comexp.experiment.objects import ObjectDef, load_objects
 
 FLOOR_KINDS = ("iso", "aniso")
 ANISO_ORIENTATIONS = ("xy", "yx")
 ROTATION_SOURCES = ("vision", "oracle")
-OBJECT_GROUP = "object"
 SCHEMA_NAME = "comexp_schema"
 
 
@@ -453,90 +452,6 @@ def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOU
         ) from None
 
 
-# --- objects from every config source -------------------------------------------------------
-
-
-def config_repository(sources: Sequence[Mapping[str, Any]]) -> Any:
-    """A Hydra config repository over the job's search path (`hydra.runtime.config_sources`):
-    the package's `conf/`, `--config-dir`, `hydra.searchpath` entries and the ConfigStore."""
-    from hydra._internal.config_repository import ConfigRepository
-    from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
-
-    csp = ConfigSearchPathImpl()
-    for s in sources:
-        csp.append(provider=str(s["provider"]), path=f"{s['schema']}://{s['path']}")
-    return ConfigRepository(csp)
-
-
-def available_objects(repo: Any) -> list[str]:
-    return list(repo.get_group_options(OBJECT_GROUP))
-
-
-def yaml_error_line(e: yaml.YAMLError) -> str:
-    """`malformed YAML in FILE, line L, column C: problem (context at line, column)`: PyYAML's
-    multi-line message in one line, positions 1-based as editors count them."""
-    if not isinstance(e, yaml.MarkedYAMLError) or e.problem_mark is None:
-        text = [t.strip() for t in str(e).splitlines() if t.strip()]
-        return f"malformed YAML: {' '.join(text[:2]) or type(e).__name__}"
-    mark = e.problem_mark
-    out = f"malformed YAML in {mark.name}, line {mark.line + 1}, column {mark.column + 1}: "
-    out += e.problem or "syntax error"
-    ctx = e.context_mark
-    if e.context and ctx is not None:
-        where = f"line {ctx.line + 1}, column {ctx.column + 1}"
-        out += f" ({e.context} at {where})" if ctx.name == mark.name else f" ({e.context})"
-    return out
-
-
-def load_object_mapping(repo: Any, name: str) -> dict[str, Any]:
-    """Raw mapping of `object/<name>` from the first source that has it."""
-    try:
-        res = repo.load_config(f"{OBJECT_GROUP}/{name}")
-    except yaml.YAMLError as e:  # Hydra's config sources pass PyYAML's errors through
-        raise ConfigError(f"object {name!r}: {yaml_error_line(e)}") from None
-    if res is None:
-        raise ConfigError(f"unknown object {name!r}")
-    node = res.config
-    if OmegaConf.is_config(node) and "defaults" in node:
-        node = OmegaConf.masked_copy(node, [k for k in node if k != "defaults"])
-    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
-    if not isinstance(data, dict):
-        raise ConfigError(f"object {name!r}: config must be a mapping")
-    return data
-
-
-def load_objects(repo: Any, names: Sequence[str] | None) -> dict[str, Any]:
-    """`comexp.experiment.objects.ObjectDef` per name (all objects in the group when `names`
-    is None)."""
-    from comexp.experiment.objects import ObjectDef
-
-    available = available_objects(repo)
-    if names is None:
-        if not available:
-            raise ConfigError("no objects found in the config group 'object'")
-        names = available
-    missing = [n for n in names if n not in available]
-    if missing:
-        shown = ", ".join(available[:30]) + (" ..." if len(available) > 30 else "")
-        raise ConfigError(f"unknown object {missing[0]!r} (available: {shown or 'none'})")
-    out = {}
-    for n in names:
-        try:
-            obj = ObjectDef.from_mapping(load_object_mapping(repo, n), default_name=n)
-        except ConfigError:
-            raise
-        except (TypeError, ValueError, KeyError) as e:
-            msg = str(e).splitlines()[0]
-            raise ConfigError(
-                msg if msg.startswith("object ") else f"object {n!r}: {msg}"
-            ) from None
-        if obj.name != n:
-            # users select objects by file name: a different `name` inside would be ambiguous
-            raise ConfigError(f"object {n!r}: its config says name {obj.name!r}")
-        out[n] = obj
-    return out
-
-
 # --- everything a job needs, checked ---------------------------------------------------------
 
 
@@ -544,7 +459,7 @@ def load_objects(repo: Any, names: Sequence[str] | None) -> dict[str, Any]:
 class PreparedJob:
     cfg: ExperimentConfig
     estimator: EstimatorSettings
-    objects: dict[str, Any]
+    objects: dict[str, ObjectDef]
 
 
 def prepare_job(cfg: DictConfig) -> PreparedJob:
@@ -561,8 +476,10 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
         from hydra.core.hydra_config import HydraConfig
 
         sources = HydraConfig.get().runtime.config_sources
-    repo = config_repository(OmegaConf.to_container(sources, resolve=False))
-    objects = load_objects(repo, exp.grid.objects)
+    try:
+        objects = load_objects(exp.grid.objects, OmegaConf.to_container(sources, resolve=False))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     check_db_location(exp.db)
     check_ray_address(exp.ray.address)
     return PreparedJob(cfg=exp, estimator=est, objects=objects)

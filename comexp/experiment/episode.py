@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from comexp.experiment.objects import object_model
 from comexp.experiment.simulator import Frame, Simulator, contact_push
 from comexp.method.estimator import ComEstimator, EstimatorSettings
-from comexp.method.geometry import prism_object
 from comexp.method.perception import (
     PerceptionError,
     PoseTracker,
@@ -123,14 +123,14 @@ def initial_yaw_rad(seed: int) -> float:
 
 def build_scene(spec: EpisodeSpec, pusher: PusherSpec | None = None) -> SceneSpec:
     """The simulator scene of an episode (centimetres -> metres), object at the floor centre."""
-    obj = prism_object(
+    obj = object_model(
         spec.object,
-        [(x / 100.0, y / 100.0) for x, y in spec.outline_cm],
-        spec.height_cm / 100.0,
-        (spec.com_cm[0] / 100.0, spec.com_cm[1] / 100.0),
-        mass_kg=spec.mass_kg,
+        spec.outline_cm,
+        spec.height_cm,
+        spec.com_cm,
         izz_scale=spec.izz_scale,
         mu_pusher=spec.mu_pusher,
+        mass_kg=spec.mass_kg,
     )
     return SceneSpec(
         floor=FloorSpec(spec.mu_floor_x, spec.mu_floor_y),
