@@ -16,9 +16,7 @@ from hydra.errors import ConfigCompositionException
 from comexp.experiment import config as config_module
 from comexp.experiment.config import (
     ConfigError,
-    check_db_location,
     prepare_job,
-    sqlite_path,
     to_experiment,
 )
 from comexp.experiment.episode import EstimatorSettings
@@ -101,6 +99,9 @@ def test_wrong_types_are_rejected_while_composing() -> None:
         (["episode.recenter_beyond_cm=-1"], "episode.recenter_beyond_cm"),
         (["estimator.theta_T=-1"], "estimator.theta_T"),
         (["estimator.C_bw=-1"], "estimator.C_bw"),
+        # the config once accepted 0 and the estimator refused it: one rule now, one message
+        (["estimator.C_bw=0"], "estimator.C_bw must be finite and > 0, got 0.0"),
+        (["estimator.theta_T=nan"], "estimator.theta_T must be finite"),
         (["estimator.n_push=0"], "estimator.n_push"),
         (["estimator.w=[1]"], "estimator.w"),
         (["estimator.rotation_source=magic"], "estimator.rotation_source"),
@@ -162,27 +163,6 @@ def test_malformed_object_yaml_names_file_and_position(
     msg = str(info.value)
     assert msg.startswith(f"object 'bad': malformed YAML in {tmp_path}/object/bad.yaml, {where}: ")
     assert problem in msg and "\n" not in msg
-
-
-def test_sqlite_path_forms() -> None:
-    assert sqlite_path("results/a.db") == Path("results/a.db")
-    assert sqlite_path("sqlite:///results/a.db") == Path("results/a.db")
-    assert sqlite_path("sqlite+pysqlite:////tmp/a.db") == Path("/tmp/a.db")
-    assert sqlite_path("sqlite://") is None
-    assert sqlite_path("postgresql://u@h/db") is None
-
-
-def test_db_location_checks_create_nothing(tmp_path: Path) -> None:
-    check_db_location(str(tmp_path / "new" / "deeper" / "a.db"))
-    assert list(tmp_path.iterdir()) == []
-    with pytest.raises(ConfigError, match="directory"):
-        check_db_location(str(tmp_path))
-    (tmp_path / "notes.txt").write_text("not a database")
-    with pytest.raises(ConfigError, match="not an SQLite database"):
-        check_db_location(str(tmp_path / "notes.txt"))
-    with pytest.raises(ConfigError, match="cannot create"):
-        check_db_location("/proc/comexp/a.db")
-    check_db_location("postgresql://user@localhost/comexp")  # checked when connecting
 
 
 def test_shipped_experiment_reproduces_the_papers_aniso_setting() -> None:

@@ -14,11 +14,9 @@ import dataclasses
 import math
 import re
 import socket
-import tempfile
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -29,7 +27,6 @@ from comexp.experiment.objects import ObjectDef, load_objects
 
 FLOOR_KINDS = ("iso", "aniso")
 ANISO_ORIENTATIONS = ("xy", "yx")
-ROTATION_SOURCES = ("vision", "oracle")
 SCHEMA_NAME = "comexp_schema"
 
 
@@ -167,6 +164,7 @@ def _estimator_fields() -> list[tuple[str, str, Any, Any]]:
 
 
 _ESTIMATOR_FIELDS = _estimator_fields()
+_CONFIG_NAMES = {name: cfg_name for cfg_name, name, _, _ in _ESTIMATOR_FIELDS}
 
 EstimatorConfig = dataclasses.make_dataclass(
     "EstimatorConfig",
@@ -339,74 +337,15 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
 
 
 def _validate_estimator(est: Any) -> EstimatorSettings:
-    known = {f.name for f in dataclasses.fields(est)}
-    if "w" in known and (len(est.w) != 2 or not all(_finite(v) for v in est.w)):
-        raise ConfigError(f"estimator.w must be two finite numbers, got {list(est.w)}")
-    for key in ("theta_T", "C_bw"):
-        if key in known and (not _finite(getattr(est, key)) or getattr(est, key) < 0):
-            raise ConfigError(f"estimator.{key} must be >= 0, got {getattr(est, key)!r}")
-    if "n_push" in known and est.n_push < 1:
-        raise ConfigError(f"estimator.n_push must be >= 1, got {est.n_push}")
-    if "rotation_source" in known and est.rotation_source not in ROTATION_SOURCES:
-        raise ConfigError(
-            f"estimator.rotation_source must be one of {', '.join(ROTATION_SOURCES)}, "
-            f"got {est.rotation_source!r}"
-        )
+    """The estimator node through `EstimatorSettings`' own checks (the one set of rules), its
+    message naming the config key (`theta_T_deg` -> `estimator.theta_T`)."""
     try:
         return estimator_settings(est)
-    except (TypeError, ValueError) as e:  # the settings' own checks, if any
-        raise ConfigError(f"estimator: {str(e).splitlines()[0]}") from None
-
-
-# --- database location ---------------------------------------------------------------------
-
-
-def sqlite_path(db: str) -> Path | None:
-    """The file behind `db` when it is SQLite (plain path or sqlite:/// URL); None otherwise
-    (another SQLAlchemy URL, or SQLite in memory)."""
-    if "://" not in db:
-        return Path(db).expanduser()
-    scheme, _, rest = db.partition("://")
-    if not scheme.startswith("sqlite"):
-        return None
-    rest = rest.split("?", 1)[0]
-    if rest in ("", "/", "/:memory:") or rest.startswith("/file:"):
-        return None
-    return Path(rest[1:]).expanduser() if rest.startswith("/") else Path(rest)
-
-
-def check_db_location(db: str) -> None:
-    """Fail early, leaving nothing behind, when an SQLite file could not be created or written.
-
-    Probes for real (permission bits lie for root and on read-only mounts): an existing file
-    is opened for update, otherwise a temporary file is created in the nearest existing parent.
-    """
-    path = sqlite_path(db)
-    if path is None:
-        return
-    if path.is_dir():
-        raise ConfigError(f"db: {str(path)!r} is a directory, not a database file")
-    if path.exists():
-        try:
-            with open(path, "r+b") as f:
-                head = f.read(16)
-        except OSError as e:
-            raise ConfigError(f"db: cannot write to {str(path)!r}: {e.strerror}") from None
-        if head and head != b"SQLite format 3\x00":
-            raise ConfigError(f"db: {str(path)!r} exists and is not an SQLite database")
-        return
-    parent = path.absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ConfigError(f"db: cannot create {str(path)!r}: {str(parent)!r} is not a directory")
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError as e:
-        raise ConfigError(
-            f"db: cannot create {str(path)!r}: {str(parent)!r} is not writable ({e.strerror})"
-        ) from None
+    except (TypeError, ValueError) as e:
+        msg = str(e).splitlines()[0]
+        field_name, _, rest = msg.partition(" ")
+        key = _CONFIG_NAMES.get(field_name)
+        raise ConfigError(f"estimator.{key} {rest}" if key else f"estimator: {msg}") from None
 
 
 RAY_CONNECT_TIMEOUT_S = 5.0
@@ -480,6 +419,11 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
         objects = load_objects(exp.grid.objects, OmegaConf.to_container(sources, resolve=False))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    check_db_location(exp.db)
+    from comexp.results.store import check_location
+
+    try:
+        check_location(exp.db)
+    except ValueError as e:
+        raise ConfigError(f"db: {e}") from None
     check_ray_address(exp.ray.address)
     return PreparedJob(cfg=exp, estimator=est, objects=objects)

@@ -22,6 +22,7 @@ import numbers
 import os
 import random
 import sqlite3
+import tempfile
 import time
 import urllib.parse
 from collections.abc import Iterable, Sequence
@@ -340,14 +341,55 @@ def _create_engine(url: str | URL, **kwargs: Any) -> Engine:
         raise ValueError(f"no database driver for {backend} ({exc.name}): {hint}") from None
 
 
-def _sqlite_file(url: str | URL) -> Path | None:
-    u = make_url(url)
+def sqlite_file(target: str | os.PathLike[str]) -> Path | None:
+    """The file behind a database location when it is SQLite: a plain path, or a sqlite://
+    URL naming a file; None for another database or SQLite in memory. The one parser of a
+    location, for opening it and for checking it before a run."""
+    text = os.fspath(target)
+    if not _is_url(text):
+        return Path(text).expanduser()
+    u = make_url(text)
     if u.get_backend_name() != "sqlite":
         return None
     db = u.database or ""
     if db in ("", ":memory:") or db.startswith("file:"):
         return None
-    return Path(db)
+    return Path(db)  # as SQLite opens it: no ~ expansion in a URL
+
+
+def check_location(target: str | os.PathLike[str]) -> None:
+    """Fail early, leaving nothing behind, when an SQLite file could not be created or written
+    (ValueError, one line); other databases are checked when connecting.
+
+    Probes for real (permission bits lie for root and on read-only mounts): an existing file
+    is opened for update, otherwise a temporary file is created in the nearest existing parent.
+    """
+    path = sqlite_file(target)
+    if path is None:
+        return
+    if path.is_dir():
+        raise ValueError(f"{str(path)!r} is a directory, not a database file")
+    if path.exists():
+        try:
+            with open(path, "r+b") as f:
+                head = f.read(16)
+        except OSError as e:
+            raise ValueError(f"cannot write to {str(path)!r}: {e.strerror}") from None
+        if head and head != b"SQLite format 3\x00":
+            raise ValueError(f"{str(path)!r} exists and is not an SQLite database")
+        return
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"cannot create {str(path)!r}: {str(parent)!r} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise ValueError(
+            f"cannot create {str(path)!r}: {str(parent)!r} is not writable ({e.strerror})"
+        ) from None
 
 
 class ResultsDB:
@@ -357,12 +399,10 @@ class ResultsDB:
         target = os.fspath(url_or_path)
         self.readonly = readonly
         self.url: str | URL
+        self.path = sqlite_file(target)
         if _is_url(target):
             self.url = target
-            self.path = _sqlite_file(target)
-        else:
-            self.path = Path(target).expanduser()
-            # Built, not parsed: a file name may contain '?', '#' or '%'.
+        else:  # built, not parsed: a file name may contain '?', '#' or '%'
             self.url = URL.create("sqlite+pysqlite", database=str(self.path))
         self.where = (
             str(self.path)
