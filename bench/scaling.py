@@ -38,7 +38,8 @@ from episode_profile import job_specs, source_digest, strided  # noqa: E402
 from memory import CLK_TCK, cpu_seconds, descendants, proc_name  # noqa: E402
 
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec  # noqa: E402
-from comexp.results.store import ResultsDB, episode_key  # noqa: E402
+from comexp.results.identity import episode_key  # noqa: E402
+from comexp.results.store import ResultsDB  # noqa: E402
 
 
 @dataclass

@@ -32,7 +32,8 @@ from comexp.results.reports import (
     paper_mean_cm,
     tables_from_rows,
 )
-from comexp.results.store import EPISODES, PUSHES, ResultsDB
+from comexp.results.schema import EPISODES, PUSHES
+from comexp.results.store import ResultsDB
 
 Rows = list[dict[str, Any]]
 

@@ -17,14 +17,10 @@ from sqlalchemy import create_engine, inspect
 from sqlalchemy.dialects import postgresql
 
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec, EstimatorSettings, PushRecord
-from comexp.results.store import (
-    EPISODES,
-    EpisodeFilter,
-    ResultsDB,
-    check_location,
-    episode_key,
-    sqlite_file,
-)
+from comexp.results.filters import EpisodeFilter
+from comexp.results.identity import episode_key
+from comexp.results.schema import EPISODES
+from comexp.results.store import ResultsDB, check_location, sqlite_file
 
 EPISODE_COLUMNS = [
     "id",

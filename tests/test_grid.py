@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_module
 
 from comexp.experiment.config import prepare_job
 from comexp.experiment.grid import episode_seed, expand_grid, floor_conditions
-from comexp.results.store import episode_key
+from comexp.results.identity import episode_key
 
 SMALL = ["grid.coms_per_object=1", "grid.izz_scales=[1]", "pusher.mu=[1.0]"]
 

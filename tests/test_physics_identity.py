@@ -9,7 +9,8 @@ import pytest
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 from comexp.experiment.simulator import physics_identity
 from comexp.method.scene import SimSettings
-from comexp.results.store import ResultsDB, episode_key
+from comexp.results.identity import episode_key
+from comexp.results.store import ResultsDB
 
 
 def _spec(**kw) -> EpisodeSpec:

@@ -22,7 +22,8 @@ from pathlib import Path
 import pytest
 from test_cli import FAKE, comexp
 
-from comexp.results.store import SCHEMA_VERSION, ResultsDB, redact_url
+from comexp.results.schema import SCHEMA_VERSION
+from comexp.results.store import ResultsDB, redact_url
 
 PASSWORD = "Pw-7f3kQz_s3cret"  # distinctive, so a grep for it cannot match anything else
 USER = "comexp_test"

@@ -16,6 +16,8 @@ from test_db import make_result
 
 from comexp.experiment.episode import EpisodeResult, EstimatorSettings
 from comexp.results import paper
+from comexp.results.filters import EpisodeFilter
+from comexp.results.identity import episode_key
 from comexp.results.plots import make_plots
 from comexp.results.reports import (
     CONDITION_COLUMNS,
@@ -34,7 +36,7 @@ from comexp.results.reports import (
     tables_csv,
     write_job_reports,
 )
-from comexp.results.store import EpisodeFilter, ResultsDB, episode_key
+from comexp.results.store import ResultsDB
 
 OBJECTS = ("obj1", "obj2", "obj10")
 FRICTIONS = (

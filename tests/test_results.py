@@ -20,9 +20,10 @@ import comexp as package
 from comexp.cli.query import main as dbcli
 from comexp.experiment.episode import EstimatorSettings
 from comexp.results.api import spec_from_json
+from comexp.results.identity import canonical_json, episode_key
 from comexp.results.plots import reconstruct_regions
 from comexp.results.reports import condition_tables
-from comexp.results.store import ResultsDB, canonical_json, episode_key
+from comexp.results.store import ResultsDB
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 TINY = [

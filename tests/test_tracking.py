@@ -23,7 +23,8 @@ from comexp.method.perception import (
     perceive_first,
 )
 from comexp.method.scene import Pose2D
-from comexp.results.store import SCHEMA_VERSION, ResultsDB
+from comexp.results.schema import SCHEMA_VERSION
+from comexp.results.store import ResultsDB
 
 BOX_CM = ((-4.0, -2.5), (4.0, -2.5), (4.0, 2.5), (-4.0, 2.5))
 
@@ -156,7 +157,7 @@ def test_camera_fps_reaches_every_episode():
     job0 = prepare_job(
         _compose("camera.fps=0", "grid.objects=[rect_8x5]", "grid.coms_per_object=1")
     )
-    from comexp.results.store import episode_key
+    from comexp.results.identity import episode_key
 
     specs0 = expand_grid(job0.cfg, job0.objects, estimator=job0.estimator)
     assert episode_key(specs[0]) != episode_key(specs0[0])  # fps is part of the identity

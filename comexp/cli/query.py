@@ -20,6 +20,7 @@ from typing import Any, NoReturn
 
 from sqlalchemy.exc import SQLAlchemyError
 
+from comexp.results.filters import EpisodeFilter
 from comexp.results.reports import (
     condition_tables,
     paper_markdown,
@@ -29,7 +30,8 @@ from comexp.results.reports import (
     table_markdown,
     tables_csv,
 )
-from comexp.results.store import EPISODES, EpisodeFilter, ResultsDB
+from comexp.results.schema import EPISODES
+from comexp.results.store import ResultsDB
 
 DEFAULT_DB = os.path.join("results", "comexp.db")
 EPISODE_DEFAULT_COLUMNS = (

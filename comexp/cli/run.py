@@ -195,7 +195,8 @@ def _scrub_hydra_files(url: str) -> None:
 
 def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Validate, expand the grid, run what is not stored yet, write the job's reports."""
-    from comexp.results.store import episode_key, redact_url
+    from comexp.results.identity import episode_key
+    from comexp.results.store import redact_url
     from comexp.workers.pool import EpisodePool, Progress, ensure_ray, run_and_store
 
     job: PreparedJob = prepare_job(cfg)

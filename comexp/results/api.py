@@ -16,7 +16,8 @@ import os
 import typing
 from typing import TYPE_CHECKING, Any
 
-from comexp.results.store import EPISODES, PUSHES, SWEEPS, ResultsDB
+from comexp.results.schema import EPISODES, PUSHES, SWEEPS
+from comexp.results.store import ResultsDB
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -37,7 +37,8 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from comexp.results.store import EpisodeFilter, ResultsDB  # noqa: E402
+from comexp.results.filters import EpisodeFilter  # noqa: E402
+from comexp.results.store import ResultsDB  # noqa: E402
 from comexp.results.reports import (  # noqa: E402
     ALL_OBJECTS,
     EPISODE_COLUMNS,
