@@ -213,3 +213,17 @@ def test_null_and_auto_need_no_probe(monkeypatch) -> None:
     monkeypatch.setattr(socket, "create_connection", lambda *a, **k: pytest.fail("probed"))
     config_module.check_ray_address(None)
     config_module.check_ray_address("auto")
+
+
+def test_every_estimator_setting_has_its_knob_with_the_settings_default() -> None:
+    """The `estimator` node is written out (no reflection): a settings field added without its
+    knob, or a default that drifts from the settings', fails here."""
+    import dataclasses
+
+    from comexp.experiment.config import SETTINGS_FIELDS, EstimatorConfig
+    from comexp.method.estimator import EstimatorSettings
+
+    fields = [f.name for f in dataclasses.fields(EstimatorSettings)]
+    assert sorted(SETTINGS_FIELDS.values()) == sorted(fields)
+    assert sorted(SETTINGS_FIELDS) == sorted(f.name for f in dataclasses.fields(EstimatorConfig))
+    assert config_module.estimator_settings(EstimatorConfig()) == EstimatorSettings()

@@ -10,11 +10,8 @@ nothing and leave nothing behind.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
-import re
 import socket
-import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -119,61 +116,44 @@ class ExecutionConfig:
     simulator_factory: str = "comexp.experiment.simulator:make_simulator"
 
 
-_UNIT_SUFFIX = re.compile(r"_(deg|rad|px|cm|mm|m|s|ms|kg)$")
+_EST = EstimatorSettings()  # the defaults are the settings' own: written once, there
 
 
-def _config_name(field_name: str) -> str:
-    """`theta_T_deg` -> `theta_T`: the command line names estimator knobs as the paper does."""
-    return _UNIT_SUFFIX.sub("", field_name)
+@dataclass
+class EstimatorConfig:
+    """The `estimator` node: the knobs of `comexp.method.estimator.EstimatorSettings`, named
+    on the command line as the paper names them (units dropped: deg, px). `SETTINGS_FIELDS`
+    maps each onto its settings field (and database column); tests/test_config.py checks that
+    every settings field has its knob here."""
+
+    w: list[float] = field(default_factory=lambda: list(_EST.w))
+    theta_T: float = _EST.theta_T_deg  # deg
+    C_bw: float = _EST.C_bw_px  # px
+    n_push: int = _EST.n_push
+    rotation_source: str = _EST.rotation_source  # vision | oracle
+    d_metric: str = _EST.d_metric
+    d_signed: bool = _EST.d_signed
+    cos_signed: bool = _EST.cos_signed
+    band_signed: bool = _EST.band_signed
+    contact_spacing: float = _EST.contact_spacing_px  # px
+    check_reachability: bool = _EST.check_reachability
 
 
-def _config_type(tp: Any) -> Any:
-    """OmegaConf has no tuples: a tuple field becomes a list of its element type."""
-    if typing.get_origin(tp) is tuple:
-        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
-        return list[args[0]] if args else list[Any]
-    if typing.get_origin(tp) is typing.Literal:
-        return str
-    return tp
-
-
-def _estimator_fields() -> list[tuple[str, str, Any, Any]]:
-    """(config name, settings field name, config type, dataclasses.field) for every field of
-    `EstimatorSettings`, so knobs added there appear on the command line without edits here."""
-    hints = typing.get_type_hints(EstimatorSettings)
-    names = [f.name for f in dataclasses.fields(EstimatorSettings)]
-    short = [_config_name(n) for n in names]
-    out = []
-    for f, name, cfg_name in zip(dataclasses.fields(EstimatorSettings), names, short, strict=True):
-        if short.count(cfg_name) > 1 or cfg_name in names and cfg_name != name:
-            cfg_name = name  # stripping the unit would collide: keep the full name
-        if f.default is not dataclasses.MISSING:
-            default = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
-        else:
-            raise TypeError(f"EstimatorSettings.{name} needs a default to be configurable")
-        if isinstance(default, tuple):
-            default = list(default)
-        if isinstance(default, list):
-            spec = field(default_factory=lambda d=default: list(d))
-        else:
-            spec = field(default=default)
-        out.append((cfg_name, name, _config_type(hints[name]), spec))
-    return out
-
-
-_ESTIMATOR_FIELDS = _estimator_fields()
-_CONFIG_NAMES = {name: cfg_name for cfg_name, name, _, _ in _ESTIMATOR_FIELDS}
-
-EstimatorConfig = dataclasses.make_dataclass(
-    "EstimatorConfig",
-    [(cfg_name, tp, spec) for cfg_name, _, tp, spec in _ESTIMATOR_FIELDS],
-)
-EstimatorConfig.__doc__ = (
-    "Estimator knobs, named as in the paper (units stripped): mapped field by field onto "
-    "`comexp.experiment.episode.EstimatorSettings`."
-)
+# config knob (`estimator.<knob>`) -> EstimatorSettings field: the one place the two names meet
+SETTINGS_FIELDS: dict[str, str] = {
+    "w": "w",
+    "theta_T": "theta_T_deg",
+    "C_bw": "C_bw_px",
+    "n_push": "n_push",
+    "rotation_source": "rotation_source",
+    "d_metric": "d_metric",
+    "d_signed": "d_signed",
+    "cos_signed": "cos_signed",
+    "band_signed": "band_signed",
+    "contact_spacing": "contact_spacing_px",
+    "check_reachability": "check_reachability",
+}
+_CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 
 
 @dataclass
@@ -210,7 +190,7 @@ register_configs()
 def estimator_settings(est: Any) -> EstimatorSettings:
     """Map the `estimator` node onto `EstimatorSettings` (lists back to tuples)."""
     kwargs = {}
-    for cfg_name, name, _, _ in _ESTIMATOR_FIELDS:
+    for cfg_name, name in SETTINGS_FIELDS.items():
         value = getattr(est, cfg_name) if not isinstance(est, Mapping) else est[cfg_name]
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value)
