@@ -186,7 +186,9 @@ def run_job(
     from episode_profile import job_specs, strided
 
     from comexp.results.store import ResultsDB
-    from comexp.workers.pool import EpisodePool, ensure_ray, run_and_store
+    from comexp.workers.driver import run_and_store
+    from comexp.workers.pool import EpisodePool
+    from comexp.workers.session import ensure_ray
 
     specs = job_specs(backend, floor, speed)
     if n is not None and n < len(specs):

@@ -89,7 +89,8 @@ def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str)
     """One pool of `workers` actors runs `specs` into a fresh database."""
     import ray
 
-    from comexp.workers.pool import EpisodePool, run_and_store
+    from comexp.workers.driver import run_and_store
+    from comexp.workers.pool import EpisodePool
 
     db = ResultsDB(os.path.join(tmp, f"scaling_{workers}.db"))
     results: list[EpisodeResult] = []
@@ -146,7 +147,7 @@ def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str)
 def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
     """What `comexp` does before the first episode: Hydra + validation + grid, the resume
     query against an empty database, and Ray's start."""
-    from comexp.workers.pool import ensure_ray
+    from comexp.workers.session import ensure_ray
 
     t0 = time.perf_counter()
     specs = job_specs(backend)

@@ -20,6 +20,7 @@ from comexp.experiment.config import (
     to_experiment,
 )
 from comexp.experiment.episode import EstimatorSettings
+from comexp.workers import session
 
 TRIANGLE = """\
 name: my_tri
@@ -183,15 +184,17 @@ def test_shipped_experiment_reproduces_the_papers_aniso_setting() -> None:
     [("ray-head:6379", ("ray-head", 6379)), ("[::1]:6379", ("::1", 6379))],
 )
 def test_ray_address_parses(address: str, expected: tuple[str, int]) -> None:
-    assert config_module.parse_ray_address(address) == expected
+    assert session.parse_ray_address(address) == expected
 
 
 @pytest.mark.parametrize(
     "address", ["ray-head", "ray-head:", ":6379", "ray-head:0", "ray-head:99999", "ray://h:1"]
 )
 def test_bad_ray_addresses_are_config_errors(address: str) -> None:
+    with pytest.raises(ValueError):
+        session.check_ray_address(address)
     with pytest.raises(ConfigError, match=r"^ray\.address: "):
-        config_module.check_ray_address(address)
+        prepare_job(_compose(f"ray.address='{address}'"))
 
 
 def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None:
@@ -204,15 +207,15 @@ def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None
         raise TimeoutError("timed out")
 
     monkeypatch.setattr(socket, "create_connection", dropped)
-    with pytest.raises(ConfigError, match=r"no answer from 10\.1\.2\.3:6379 within 5 s"):
-        config_module.check_ray_address("10.1.2.3:6379")
-    assert seen == {"addr": ("10.1.2.3", 6379), "timeout": config_module.RAY_CONNECT_TIMEOUT_S}
+    with pytest.raises(ValueError, match=r"no answer from 10\.1\.2\.3:6379 within 5 s"):
+        session.check_ray_address("10.1.2.3:6379")
+    assert seen == {"addr": ("10.1.2.3", 6379), "timeout": session.RAY_CONNECT_TIMEOUT_S}
 
 
 def test_null_and_auto_need_no_probe(monkeypatch) -> None:
     monkeypatch.setattr(socket, "create_connection", lambda *a, **k: pytest.fail("probed"))
-    config_module.check_ray_address(None)
-    config_module.check_ray_address("auto")
+    session.check_ray_address(None)
+    session.check_ray_address("auto")
 
 
 def test_every_estimator_setting_has_its_knob_with_the_settings_default() -> None:

@@ -102,7 +102,7 @@ def test_compose_has_a_head_two_workers_and_a_sweep_on_a_volume() -> None:
     sweep = services["sweep"]
     text = " ".join(_words(sweep["entrypoint"]) + _words(sweep["command"]))
     assert "comexp ray.address=ray-head:6379" in text
-    # comexp joins as a zero-CPU node of its own (workers/pool.py JoinNode): the container
+    # comexp joins as a zero-CPU node of its own (workers/session.py JoinNode): the container
     # starts no Ray node itself, but needs the shared memory of that node's object store
     assert "ray start" not in text
     assert sweep.get("shm_size"), "the sweep's join node keeps its object store in /dev/shm"

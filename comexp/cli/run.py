@@ -197,7 +197,9 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Validate, expand the grid, run what is not stored yet, write the job's reports."""
     from comexp.results.identity import episode_key
     from comexp.results.store import redact_url
-    from comexp.workers.pool import EpisodePool, Progress, ensure_ray, run_and_store
+    from comexp.workers.driver import Progress, run_and_store
+    from comexp.workers.pool import EpisodePool
+    from comexp.workers.session import ensure_ray
 
     job: PreparedJob = prepare_job(cfg)
     exp = job.cfg

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import math
-import socket
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -328,49 +327,6 @@ def _validate_estimator(est: Any) -> EstimatorSettings:
         raise ConfigError(f"estimator.{key} {rest}" if key else f"estimator: {msg}") from None
 
 
-RAY_CONNECT_TIMEOUT_S = 5.0
-
-
-def parse_ray_address(address: str) -> tuple[str, int]:
-    """HOST:PORT (a cluster's GCS address, `[v6addr]:PORT` too) as (host, port), or
-    `ConfigError`. Ray Client addresses (`ray://`) would need `ray[client]` (grpcio), which is
-    not a dependency: comexp joins clusters as a node instead (workers/pool.py `JoinNode`)."""
-    if "://" in address:
-        raise ConfigError(
-            f"ray.address: {address!r}: Ray Client (ray://) is not supported; "
-            "give the cluster's HOST:PORT (the head's --port, 6379 by default)"
-        )
-    host, sep, port = address.rpartition(":")
-    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ConfigError(f"ray.address: expected null, auto or HOST:PORT, got {address!r}")
-    return host, int(port)
-
-
-def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
-    """Fail within `timeout_s`, before anything is written, when no server listens at a
-    HOST:PORT `ray.address`. Left to itself Ray retries an unreachable address for minutes,
-    printing GCS warnings. (`auto` names the local node, which Ray finds or fails on at once.)
-    """
-    if address is None or address == "auto":
-        return
-    host, port = parse_ray_address(address)
-    try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            pass
-    except socket.gaierror as e:
-        raise ConfigError(f"ray.address: cannot resolve host {host!r} ({e.strerror})") from None
-    except TimeoutError:
-        raise ConfigError(
-            f"ray.address: no answer from {address} within {timeout_s:g} s (is the Ray head up?)"
-        ) from None
-    except OSError as e:
-        reason = e.strerror or type(e).__name__
-        raise ConfigError(
-            f"ray.address: cannot reach {address}: {reason} (is the Ray head up?)"
-        ) from None
-
-
 # --- everything a job needs, checked ---------------------------------------------------------
 
 
@@ -405,5 +361,10 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
         check_location(exp.db)
     except ValueError as e:
         raise ConfigError(f"db: {e}") from None
-    check_ray_address(exp.ray.address)
+    from comexp.workers.session import check_ray_address
+
+    try:
+        check_ray_address(exp.ray.address)
+    except ValueError as e:
+        raise ConfigError(f"ray.address: {e}") from None
     return PreparedJob(cfg=exp, estimator=est, objects=objects)
