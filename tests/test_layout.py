@@ -68,3 +68,20 @@ def test_console_scripts_point_into_the_cli_room(name, target):
     (ep,) = [e for e in entry_points(group="console_scripts") if e.name == name]
     assert ep.value == f"{target}:main"
     assert callable(ep.load())
+
+
+def test_every_module_of_the_package_is_tracked_by_git():
+    """A room's name must not fall under an ignore rule (`results/` once hid comexp/results/'s
+    new modules from `git add`: the tree worked, a checkout would not have)."""
+    if not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    dirs = ("comexp", "backends", "workers")
+    res = subprocess.run(
+        ["git", "ls-files", "--others", "--ignored", "--exclude-standard", *dirs],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    hidden = [f for f in res.stdout.split() if f.endswith(".py")]
+    assert hidden == [], f"ignored by .gitignore: {hidden}"
