@@ -74,5 +74,3 @@ class EpisodeFilter:
         if self.mu_floor is not None:
             out += [near(c.mu_floor_x, self.mu_floor), near(c.mu_floor_y, self.mu_floor)]
         return out
-
-

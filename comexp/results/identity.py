@@ -52,4 +52,3 @@ def episode_key(spec: EpisodeSpec) -> str:
     """Identity of an episode: sha256 of every spec field, so fields added later count too."""
     text = KEY_VERSION + ":" + canonical_json(spec)
     return hashlib.sha256(text.encode()).hexdigest()
-

@@ -38,7 +38,6 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from comexp.results.filters import EpisodeFilter  # noqa: E402
-from comexp.results.store import ResultsDB  # noqa: E402
 from comexp.results.reports import (  # noqa: E402
     ALL_OBJECTS,
     EPISODE_COLUMNS,
@@ -53,6 +52,7 @@ from comexp.results.reports import (  # noqa: E402
     pooled_values,
     tables_from_rows,
 )
+from comexp.results.store import ResultsDB  # noqa: E402
 
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
@@ -359,8 +359,8 @@ def reconstruct_regions(
 
     from comexp.method.estimator import EstimatorSettings, update_region
     from comexp.method.perception import hull_region
-    from comexp.results.api import _from_json
     from comexp.method.scene import CameraSpec
+    from comexp.results.api import _from_json
 
     cam = CameraSpec()
     pixel_m = cam.model().pixel_size_m(cam.height_m - float(spec["height_cm"]) / 100.0)

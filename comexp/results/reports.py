@@ -32,11 +32,11 @@ from typing import Any
 
 import numpy as np
 
+from comexp.method.estimator import EstimatorSettings
 from comexp.results import paper
 from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import canonical_json
 from comexp.results.store import ResultsDB
-from comexp.method.estimator import EstimatorSettings
 
 # Every column that can change a result. Adding one (e.g. a physics version) here makes every
 # table, report, plot and the bench tell its values apart.

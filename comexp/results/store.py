@@ -14,11 +14,6 @@ Why the SQLite details matter:
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import json
-import math
-import numbers
 import os
 import random
 import sqlite3
@@ -26,22 +21,12 @@ import tempfile
 import time
 import urllib.parse
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (
-    JSON,
-    DateTime,
     Engine,
-    Float,
-    ForeignKey,
-    Index,
     Integer,
-    String,
-    Text,
-    UniqueConstraint,
     create_engine,
     event,
     func,
@@ -52,7 +37,6 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from comexp.experiment.episode import EpisodeResult
 from comexp.results.filters import EpisodeFilter
@@ -540,5 +524,3 @@ def _reason(exc: BaseException) -> str:
     orig = getattr(exc, "orig", None)
     text = str(orig if orig is not None else exc)
     return text.strip().splitlines()[0] if text.strip() else type(exc).__name__
-
-
