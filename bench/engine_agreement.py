@@ -23,7 +23,6 @@ import statistics
 import sys
 import time
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs, strided  # noqa: E402

@@ -47,14 +47,11 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from typing import Any
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-
-from comexp.experiment import episode as episode_mod  # noqa: E402
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec, run_episode  # noqa: E402
-from comexp.experiment.simulator import Simulator, make_simulator  # noqa: E402
-from comexp.method.estimator import ComEstimator  # noqa: E402
-from comexp.method.perception import PoseTracker  # noqa: E402
+from comexp.experiment import episode as episode_mod
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec, run_episode
+from comexp.experiment.simulator import Simulator, make_simulator
+from comexp.method.estimator import ComEstimator
+from comexp.method.perception import PoseTracker
 
 PHASES = ("physics (sim.push)", "scene build", "render", "perception", "estimator")
 

@@ -78,7 +78,6 @@ def slice_rows(workdir: Path) -> dict[str, Any]:
         f"hydra.run.dir={workdir / 'run'}",
     ]
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
-    env.setdefault("MUJOCO_GL", "egl")
     res = subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, env=env)
     if res.returncode != 0:
         raise SystemExit(f"comexp failed ({res.returncode}):\n{res.stderr[-3000:]}")

@@ -140,7 +140,7 @@ def slide_check(sim: Simulator, obj: ObjectDef) -> dict:
     }
 
 
-def _fmt(counts: dict[str, int]) -> str:
+def _counts(counts: dict[str, int]) -> str:
     return ",".join(f"{k}:{v}" for k, v in sorted(counts.items())) or "-"
 
 
@@ -242,8 +242,8 @@ def main() -> None:
         print(
             f"{obj.name:24s} {obj.height_cm:5.1f} {tip['pushes']:6d} {tip['max_tilt_deg']:8.2f} "
             f"{bad:>14s} {tip['worst']:>22s} | {sl['max_slide_cm']:8.1f} "
-            f"{sl['travel_cm']:9.1f} {sl['status']:>9s} | {_fmt(w01['statuses']):>16s} "
-            f"{_fmt(w1['statuses']):>12s}"
+            f"{sl['travel_cm']:9.1f} {sl['status']:>9s} | {_counts(w01['statuses']):>16s} "
+            f"{_counts(w1['statuses']):>12s}"
         )
     sim.close()
     for mu, ws in walks.items():
@@ -252,7 +252,7 @@ def main() -> None:
             for k, v in w["statuses"].items():
                 tot[k] = tot.get(k, 0) + v
         far = max(w["max_travel_cm"] for w in ws)
-        print(f"random walks, floor mu {mu}: {_fmt(tot)}; farthest end from centre {far:.1f} cm")
+        print(f"random walks, floor mu {mu}: {_counts(tot)}; farthest end from centre {far:.1f} cm")
     print(
         f"\n{total_push} tipping pushes, {total_bad} not ok, worst tilt {all_tilt:.2f} deg; "
         f"{time.perf_counter() - t0:.1f} s"

@@ -9,15 +9,12 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from comexp.experiment.episode import EpisodeSpec, run_episode  # noqa: E402
-from comexp.experiment.objects import com_points, load_objects  # noqa: E402
-from comexp.experiment.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeSpec, run_episode
+from comexp.experiment.objects import com_points, load_objects
+from comexp.experiment.simulator import make_simulator
 
 
 def main() -> None:

@@ -30,16 +30,14 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
-from episode_profile import job_specs, source_digest, strided  # noqa: E402
-from memory import CLK_TCK, cpu_seconds, descendants, proc_name  # noqa: E402
+from episode_profile import job_specs, source_digest, strided
+from memory import CLK_TCK, cpu_seconds, descendants, proc_name
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec  # noqa: E402
-from comexp.results.identity import episode_key  # noqa: E402
-from comexp.results.store import ResultsDB  # noqa: E402
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.results.identity import episode_key
+from comexp.results.store import ResultsDB
 
 
 @dataclass

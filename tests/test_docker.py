@@ -159,7 +159,7 @@ def test_dockerfile_installs_with_the_makefile_and_copies_what_it_needs() -> Non
     env = " ".join(args for op, args in steps if op == "ENV")
     venv = re.search(r"make install VENV=(\S+)", runs[[*runs].index(steps[install][1])])
     assert venv and f"PATH={venv.group(1)}/bin:" in env
-    assert "MUJOCO_GL=egl" in env  # headless rendering, as the Makefile exports
+    assert "MUJOCO_GL=egl" in env  # headless rendering (the backend's default), explicit here
 
 
 def test_build_context_ignore_file_keeps_what_the_image_copies() -> None:

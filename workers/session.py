@@ -80,12 +80,11 @@ _JOIN_FAILED = re.compile(r"^.*(Failed to connect to|Timed out while waiting for
 
 
 def worker_env(extra: dict[str, str] | None = None) -> dict[str, str]:
-    """Environment for worker processes: headless MuJoCo rendering, no usage stats."""
-    env = {
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-        "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl"),
-        "RAY_USAGE_STATS_ENABLED": "0",
-    }
+    """Environment for worker processes: no usage stats, and the driver's rendering choice when
+    it made one (MUJOCO_GL, PYOPENGL_PLATFORM); the default, headless EGL, is set in one place,
+    where MuJoCo is imported (backends/mujoco_sim.py)."""
+    env = {k: os.environ[k] for k in ("MUJOCO_GL", "PYOPENGL_PLATFORM") if k in os.environ}
+    env["RAY_USAGE_STATS_ENABLED"] = "0"
     env.update(extra or {})
     return env
 
