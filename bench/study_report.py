@@ -28,6 +28,7 @@ from comexp.results.reports import (
     Condition,
     fmt_num,
     group_episodes,
+    markdown_table,
     ok_error,
     paper_mean_cm,
     tables_from_rows,
@@ -44,9 +45,7 @@ def _md(header: list[str], rows: list[list[object]]) -> str:
             return "" if v != v else f"{v:.3f}"
         return str(v)
 
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
-    return "\n".join(lines)
+    return markdown_table(header, [[cell(v) for v in r] for r in rows])
 
 
 def _mean(xs: Sequence[float]) -> float:
