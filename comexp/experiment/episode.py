@@ -94,7 +94,9 @@ class PushRecord:
     dir_y: float
     rotation_deg: float  # measured (vision or oracle)
     rotation_true_deg: float
-    decision: str  # ccw | cw | band
+    # ccw | cw | band; ccw-empty | cw-empty | band-empty when that update would have left no
+    # point, so the region was kept (`comexp.method.estimator.update_region`)
+    decision: str
     region_px: int  # region size after the update
     n_frames: int = 0  # tracking frames the rotation was measured through (0: before/after)
 

@@ -133,7 +133,9 @@ class Push(Base):
     dir_y: Mapped[float] = mapped_column(Float)
     rotation_deg: Mapped[float] = mapped_column(Float)
     rotation_true_deg: Mapped[float] = mapped_column(Float)
-    decision: Mapped[str] = mapped_column(String(16))  # ccw | cw | band
+    # ccw | cw | band, or ccw-empty | cw-empty | band-empty (that update would have emptied the
+    # region, which was kept: estimator.update_region)
+    decision: Mapped[str] = mapped_column(String(16))
     region_px: Mapped[int] = mapped_column(Integer)
     # tracking frames the measured rotation went through (0: the images before and after)
     n_frames: Mapped[int] = mapped_column(Integer, default=0)
