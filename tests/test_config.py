@@ -230,3 +230,10 @@ def test_every_estimator_setting_has_its_knob_with_the_settings_default() -> Non
     assert sorted(SETTINGS_FIELDS.values()) == sorted(fields)
     assert sorted(SETTINGS_FIELDS) == sorted(f.name for f in dataclasses.fields(EstimatorConfig))
     assert config_module.estimator_settings(EstimatorConfig()) == EstimatorSettings()
+
+
+def test_the_user_facing_config_carries_no_test_hooks() -> None:
+    """The fake runner and simulator of the tests come through the environment
+    (COMEXP_RUNNER, COMEXP_SIMULATOR_FACTORY), not through `execution.*`."""
+    exp = to_experiment(_compose())
+    assert not {"runner", "simulator_factory"} & set(vars(exp.execution))

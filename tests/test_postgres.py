@@ -227,7 +227,7 @@ def test_two_concurrent_jobs_store_every_episode_once(pg: PgServer, tmp_path: Pa
     def job(name: str) -> None:
         d = tmp_path / name
         d.mkdir()
-        results[name] = comexp(d, *FAKE, *grid, f"db={url}", FAKE_RUN_SLEEP_S="0.05")
+        results[name] = comexp(d, *grid, f"db={url}", FAKE_RUN_SLEEP_S="0.05", **FAKE)
 
     threads = [threading.Thread(target=job, args=(n,)) for n in ("a", "b")]
     for t in threads:

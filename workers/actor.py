@@ -34,6 +34,11 @@ from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
 DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.simulator:make_simulator"
+# The test seam of a whole `comexp` process (tests/test_cli.py runs the command with a fake
+# runner and simulator): dotted paths in the environment, read where the pool is made, so that
+# the user-facing config carries no test hooks.
+RUNNER_ENV = "COMEXP_RUNNER"
+SIMULATOR_FACTORY_ENV = "COMEXP_SIMULATOR_FACTORY"
 
 
 def import_dotted(path: str) -> Callable[..., Any]:

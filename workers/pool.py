@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -22,7 +23,14 @@ import ray.exceptions as rex
 
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
-from .actor import DEFAULT_RUNNER, DEFAULT_SIMULATOR_FACTORY, RemoteEpisodeWorker, failed_result
+from .actor import (
+    DEFAULT_RUNNER,
+    DEFAULT_SIMULATOR_FACTORY,
+    RUNNER_ENV,
+    SIMULATOR_FACTORY_ENV,
+    RemoteEpisodeWorker,
+    failed_result,
+)
 
 log = logging.getLogger("comexp.pool")
 
@@ -88,8 +96,8 @@ class EpisodePool:
         backend: str,
         workers: int = 2,
         *,
-        runner: str = DEFAULT_RUNNER,
-        simulator_factory: str = DEFAULT_SIMULATOR_FACTORY,
+        runner: str | None = None,
+        simulator_factory: str | None = None,
         runner_kwargs: dict[str, Any] | None = None,
         batch_size: int = 8,
         max_retries: int = 2,
@@ -109,11 +117,14 @@ class EpisodePool:
         self.inflight_per_worker = inflight_per_worker
         self.start_timeout_s = start_timeout_s
         self.replace_timeout_s = replace_timeout_s
+        # None: the process' own (`RUNNER_ENV`, `SIMULATOR_FACTORY_ENV`), else the real ones
+        runner = runner or os.environ.get(RUNNER_ENV) or DEFAULT_RUNNER
+        factory = simulator_factory or os.environ.get(SIMULATOR_FACTORY_ENV)
         # episode_timeout_s: per-episode limit enforced in the worker (see workers.actor)
         self._actor_args = (
             backend,
             runner,
-            simulator_factory,
+            factory or DEFAULT_SIMULATOR_FACTORY,
             runner_kwargs,
             episode_timeout_s,
             kill_grace_s,

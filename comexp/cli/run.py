@@ -236,8 +236,6 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
             pool = EpisodePool(
                 exp.backend.name,
                 exp.workers,
-                runner=exp.execution.runner,
-                simulator_factory=exp.execution.simulator_factory,
                 batch_size=exp.execution.batch_size,
                 max_retries=exp.execution.max_retries,
                 replace_timeout_s=exp.execution.restart_timeout_s,

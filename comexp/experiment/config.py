@@ -103,7 +103,7 @@ class RayConfig:
 
 @dataclass
 class ExecutionConfig:
-    """How episodes are run; the dotted paths exist so tests can inject cheap fakes."""
+    """How episodes are run."""
 
     batch_size: int = 8  # episodes per Ray task: ~0.5 ms overhead vs ~100 ms per episode
     max_retries: int = 2  # a batch whose worker dies is retried this often, then split
@@ -111,8 +111,6 @@ class ExecutionConfig:
     # An episode still running after this is failed with `failure="timeout"` and its worker
     # carries on (episodes take ~0.1-0.3 s; quasi-static ones a few s): catches hangs only.
     episode_timeout_s: float = 120.0
-    runner: str = "comexp.experiment.episode:run_episode"
-    simulator_factory: str = "comexp.experiment.simulator:make_simulator"
 
 
 _EST = EstimatorSettings()  # the defaults are the settings' own: written once, there
