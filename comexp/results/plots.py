@@ -174,9 +174,7 @@ def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
                 if e is not None:
                     cells[(r["object"], cond.speed_cm_s)].append(e)
                     cells[(ALL_OBJECTS, cond.speed_cm_s)].append(e)
-            (table,) = tables_from_rows(group, PAPER_POOL)
-            mark = paper_mean_cm(table)
-            if mark is not None:
+            if (mark := _paper_mark(group)) is not None:
                 marks[(ALL_OBJECTS, cond.speed_cm_s)] = mark
         objects = sorted({r["object"] for g in groups.values() for r in g}, key=natural_key)
         speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
@@ -198,6 +196,13 @@ def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
             )
         )
     return paths
+
+
+def _paper_mark(group: Rows) -> float | None:
+    """The paper's all-objects mean for a group pooled as its tables are, where the group is
+    the paper's condition (`reports.paper_mean_cm`)."""
+    (table,) = tables_from_rows(group, PAPER_POOL)
+    return paper_mean_cm(table)
 
 
 def _friction_text(key: tuple[Any, ...]) -> str:
@@ -308,9 +313,7 @@ def plot_backends(rows: Rows, out_dir: Path) -> list[Path]:
             continue
         marks = {}
         for cond, group in groups.items():
-            (table,) = tables_from_rows(group, PAPER_POOL)
-            mark = paper_mean_cm(table)
-            if mark is not None:
+            if (mark := _paper_mark(group)) is not None:
                 marks[((cond.floor, cond.speed_cm_s), cond.backend)] = mark
         title = (
             f"{panel.label() or 'all'}: backends on the same condition "

@@ -38,9 +38,8 @@ from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import canonical_json
 from comexp.results.store import ResultsDB
 
-# Every column that can change a result. Adding one (e.g. a physics version) here makes every
-# table, report, plot and the bench tell its values apart.
-CONDITION_COLUMNS: tuple[str, ...] = (
+# Core columns: always in a label (unless pooled), in this order.
+CORE_COLUMNS = (
     "backend",
     "floor",
     "mu_floor_x",
@@ -48,6 +47,11 @@ CONDITION_COLUMNS: tuple[str, ...] = (
     "mu_pusher",
     "speed_cm_s",
     "izz_scale",
+)
+# Every column that can change a result. Adding one (e.g. a physics version) here makes every
+# table, report, plot and the bench tell its values apart.
+CONDITION_COLUMNS: tuple[str, ...] = (
+    *CORE_COLUMNS,
     "mass_kg",
     "push_length_cm",
     "recenter_beyond_cm",
@@ -66,16 +70,6 @@ PROTOCOL_DEFAULTS: dict[str, Any] = {
     "camera_fps": 10.0,
 }
 _DEFAULT_ESTIMATOR: dict[str, Any] = json.loads(canonical_json(EstimatorSettings()))
-# Core columns: always in a label (unless pooled), in this order.
-CORE_COLUMNS = (
-    "backend",
-    "floor",
-    "mu_floor_x",
-    "mu_floor_y",
-    "mu_pusher",
-    "speed_cm_s",
-    "izz_scale",
-)
 STAT_COLUMNS = ("n", "mean", "std", "max", "min")
 ALL_OBJECTS = "all"
 EPISODE_COLUMNS = (*CONDITION_COLUMNS, "object", "status", "failure", "error_cm")
