@@ -18,8 +18,6 @@ LOCK_EXCLUDE := comexp pip setuptools wheel
 # of a package-dir layout like ours (backends/, workers/, conf/ mapped into comexp): silenced.
 NO_EDITABLE_NOTICE := PYTHONWARNINGS='ignore:Editable installation:UserWarning'
 
-export MUJOCO_GL ?= egl
-export PYOPENGL_PLATFORM ?= egl
 export RAY_USAGE_STATS_ENABLED ?= 0
 
 .PHONY: run test install lint system-deps lock clean

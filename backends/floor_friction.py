@@ -28,8 +28,8 @@ import numpy as np
 import shapely
 from numba import njit
 
-from comexp.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
-from comexp.simulator import pusher_contact_height_m
+from comexp.experiment.simulator import pusher_contact_height_m
+from comexp.method.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
 
 ZERO3 = np.zeros(3)
 EMPTY = np.zeros(0)

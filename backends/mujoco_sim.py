@@ -42,19 +42,19 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings  # noqa: E402
-from comexp.scene import (  # noqa: E402
-    GRAVITY_M_S2,
-    DepthImage,
-    ObjectState,
-    SceneSpec,
-    SimSettings,
-)
-from comexp.simulator import (  # noqa: E402
+from comexp.experiment.simulator import (  # noqa: E402
     FLOOR_FRICTION_CHOICES,
     PushStatus,
     Simulator,
     crop_camera,
     object_window_px,
+)
+from comexp.method.scene import (  # noqa: E402
+    GRAVITY_M_S2,
+    DepthImage,
+    ObjectState,
+    SceneSpec,
+    SimSettings,
 )
 
 _PARK_XY_M = (3.0, 3.0)  # far outside the floor and the camera frustum

@@ -23,7 +23,7 @@ model"), so that the 3-D engines can be checked against it:
   not rounded to a step). An impact is resolved first, without floor friction (an impulse is
   instantaneous; the floor's friction over it is negligible), then the step's friction and the
   sustained push are solved together; the pressure follows the sustained forces only.
-- **The camera** is the exact ray-cast of the prism (`comexp.perception.render_prism_depth`).
+- **The camera** is the exact ray-cast of the prism (`comexp.method.perception.render_prism_depth`).
 
 One compiled call (Numba) runs many steps: contact, impact, the friction solves with the
 pusher constraint, the pressure fixed point, integration and the penetration projection, on
@@ -49,8 +49,9 @@ from comexp.backends.floor_friction import (
     offsets_kernel,
     set_cop_kernel,
 )
-from comexp.perception import render_prism_depth
-from comexp.scene import (
+from comexp.experiment.simulator import Simulator
+from comexp.method.perception import render_prism_depth
+from comexp.method.scene import (
     GRAVITY_M_S2,
     DepthImage,
     ObjectSpec,
@@ -58,7 +59,6 @@ from comexp.scene import (
     SceneSpec,
     SimSettings,
 )
-from comexp.simulator import Simulator
 
 _PARK_XY_M = (0.0, 0.5)  # outside the floor and the camera's view
 

@@ -37,21 +37,21 @@ from collections.abc import Sequence
 import numpy as np
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
-from comexp.scene import (
-    GRAVITY_M_S2,
-    DepthImage,
-    ObjectSpec,
-    ObjectState,
-    SceneSpec,
-    SimSettings,
-)
-from comexp.simulator import (
+from comexp.experiment.simulator import (
     FLOOR_FRICTION_CHOICES,
     PARK_XY_M,
     Simulator,
     crop_camera,
     object_window_px,
     pusher_contact_height_m,
+)
+from comexp.method.scene import (
+    GRAVITY_M_S2,
+    DepthImage,
+    ObjectSpec,
+    ObjectState,
+    SceneSpec,
+    SimSettings,
 )
 
 

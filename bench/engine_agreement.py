@@ -23,15 +23,14 @@ import statistics
 import sys
 import time
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs, strided  # noqa: E402
 
-from comexp.episode import build_scene  # noqa: E402
-from comexp.estimator import ComEstimator  # noqa: E402
-from comexp.perception import perceive_first  # noqa: E402
-from comexp.simulator import contact_push, make_simulator  # noqa: E402
+from comexp.experiment.episode import build_scene  # noqa: E402
+from comexp.experiment.simulator import contact_push, make_simulator  # noqa: E402
+from comexp.method.estimator import ComEstimator  # noqa: E402
+from comexp.method.perception import perceive_first  # noqa: E402
 
 
 def first_push(planar, spec):

@@ -3,7 +3,7 @@
     .venv/bin/python bench/episode_profile.py --backend pybullet [--episodes 40] [--speed 40]
     .venv/bin/python bench/episode_profile.py --backend mujoco --speed 4 --dump /tmp/mj.json
 
-In-process, one simulator, real episodes: the specs are the job's own grid (`comexp.grid`
+In-process, one simulator, real episodes: the specs are the job's own grid (`comexp.experiment.grid`
 over the built-in objects, through the Hydra config like `comexp` itself), a strided slice
 of it that holds every object and every condition (`strided`). Time is split by wrapping
 the functions that `run_episode` calls (sim.push, sim.build, sim.render_depth, perception,
@@ -47,14 +47,11 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from typing import Any
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-
-from comexp import episode as episode_mod  # noqa: E402
-from comexp.episode import EpisodeResult, EpisodeSpec, run_episode  # noqa: E402
-from comexp.estimator import ComEstimator  # noqa: E402
-from comexp.perception import PoseTracker  # noqa: E402
-from comexp.simulator import Simulator, make_simulator  # noqa: E402
+from comexp.experiment import episode as episode_mod
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec, run_episode
+from comexp.experiment.simulator import Simulator, make_simulator
+from comexp.method.estimator import ComEstimator
+from comexp.method.perception import PoseTracker
 
 PHASES = ("physics (sim.push)", "scene build", "render", "perception", "estimator")
 
@@ -67,8 +64,8 @@ def job_specs(
     or created under results/."""
     from hydra import compose, initialize_config_module
 
-    from comexp.config import prepare_job
-    from comexp.grid import expand_grid
+    from comexp.experiment.config import prepare_job
+    from comexp.experiment.grid import expand_grid
 
     db = os.path.join(tempfile.gettempdir(), "comexp-bench-unused.db")
     args = [f"backend={backend}", f"floor={floor}", f"speed={speed:g}", f"db={db}", *overrides]
@@ -198,7 +195,7 @@ def source_digest(backend: str) -> str:
     every figure is tied to the exact engine code it measured."""
     import importlib
 
-    from comexp.simulator import BACKENDS
+    from comexp.experiment.simulator import BACKENDS
 
     mod = importlib.import_module(BACKENDS[backend].split(":")[0])
     with open(mod.__file__ or "", "rb") as f:

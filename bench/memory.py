@@ -27,8 +27,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -185,8 +183,10 @@ def run_job(
 ) -> dict[str, Any]:
     from episode_profile import job_specs, strided
 
-    from comexp.db import ResultsDB
-    from comexp.workers.pool import EpisodePool, ensure_ray, run_and_store
+    from comexp.results.store import ResultsDB
+    from comexp.workers.driver import run_and_store
+    from comexp.workers.pool import EpisodePool
+    from comexp.workers.session import ensure_ray
 
     specs = job_specs(backend, floor, speed)
     if n is not None and n < len(specs):

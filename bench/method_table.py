@@ -2,8 +2,8 @@
 objects x CoMs; optionally the same for the alternative readings of the paper's ambiguities.
 Also reports how well vision measures each push's rotation on real renders.
 
-    MUJOCO_GL=egl .venv/bin/python bench/method_table.py                  # main table
-    MUJOCO_GL=egl .venv/bin/python bench/method_table.py --readings \\
+    .venv/bin/python bench/method_table.py                  # main table
+    .venv/bin/python bench/method_table.py --readings \\
         --backends mujoco --sources oracle                                 # ambiguity readings
     .venv/bin/python bench/method_table.py --pose-synthetic   # vision yaw error, exact renders
 """
@@ -11,18 +11,15 @@ Also reports how well vision measures each push's rotation on real renders.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from collections import defaultdict
 
 import numpy as np
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-
-from comexp.episode import EpisodeSpec, EstimatorSettings, run_episode  # noqa: E402
-from comexp.objects import builtin_objects, com_points  # noqa: E402
-from comexp.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeSpec, EstimatorSettings, run_episode
+from comexp.experiment.objects import com_points, load_objects
+from comexp.experiment.simulator import make_simulator
 
 READINGS: dict[str, dict] = {
     "default": {},
@@ -52,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.pose_synthetic:
         return pose_synthetic()
 
-    objs = builtin_objects()
+    objs = load_objects().values()
     if args.objects:
         objs = [o for o in objs if o.name in args.objects]
     readings = READINGS if args.readings else {"default": {}}
@@ -111,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
                             float(np.mean(walls)),
                         )
                     )
-                    print(_fmt(rows[-1]), flush=True)
+                    print(_row_markdown(rows[-1]), flush=True)
         sim.close()
     print()
     print(
@@ -120,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
-        print(_fmt(row))
+        print(_row_markdown(row))
     if not args.readings:
         print("\n# per-object mean error (cm)")
         for key, by_obj in per_object.items():
@@ -133,8 +130,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def pose_synthetic(n_images: int = 20) -> int:
     """Vision's yaw error on exact ray-cast images: random moves of up to 10 cm and 0.5 rad."""
-    from comexp.perception import PoseTracker, observe, perceive_first, render_prism_depth
-    from comexp.scene import CameraSpec, Pose2D
+    from comexp.method.perception import PoseTracker, observe, perceive_first, render_prism_depth
+    from comexp.method.scene import CameraSpec, Pose2D
 
     cam = CameraSpec().model()
     shapes = {
@@ -167,7 +164,7 @@ def pose_synthetic(n_images: int = 20) -> int:
     return 0
 
 
-def _fmt(row: tuple) -> str:
+def _row_markdown(row: tuple) -> str:
     b, s, sp, rn, n, fails, mean, med, share, r50, r95, wall = row
     f = ", ".join(f"{k}:{v}" for k, v in fails.items()) or "0"
     return (

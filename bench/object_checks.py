@@ -26,16 +26,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 from shapely.geometry import LineString, Point
 
-from comexp.objects import (
+from comexp.experiment.objects import (
     ObjectDef,
     _name_key,
-    builtin_objects,
     com_points,
-    load_builtin,
-    to_object_spec,
+    load_objects,
 )
-from comexp.scene import FloorSpec, PusherSpec, SceneSpec
-from comexp.simulator import PushStatus, Simulator, contact_push, make_simulator
+from comexp.experiment.simulator import PushStatus, Simulator, contact_push, make_simulator
+from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
 
 SPEED_M_S = 0.4
 PUSH_LENGTH_M = 0.03
@@ -103,7 +101,7 @@ def tipping_check(sim: Simulator, obj: ObjectDef, n_coms: int) -> dict:
     ]
     for kind, com in coms:
         for push in _edge_pushes(obj, com, r_cm):
-            scene = SceneSpec(FloorSpec(1.0, 1.0), to_object_spec(obj, com, 1.0, 1.0))
+            scene = SceneSpec(FloorSpec(1.0, 1.0), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
             sim.build(scene)
             out = _do_push(sim, scene, push)
             n_push += 1
@@ -120,7 +118,7 @@ def slide_check(sim: Simulator, obj: ObjectDef) -> dict:
     r_cm = PusherSpec().radius_m * 100
     # the push through the CoM along the longest-travel edge normal: pick the first one found
     push = _edge_pushes(obj, com, r_cm)[0]
-    scene = SceneSpec(FloorSpec(0.1, 0.1), to_object_spec(obj, com, 1.0, 1.0))
+    scene = SceneSpec(FloorSpec(0.1, 0.1), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
     sim.build(scene)
     start = sim.true_pose()
     slides, status = [], "ok"
@@ -142,7 +140,7 @@ def slide_check(sim: Simulator, obj: ObjectDef) -> dict:
     }
 
 
-def _fmt(counts: dict[str, int]) -> str:
+def _counts(counts: dict[str, int]) -> str:
     return ",".join(f"{k}:{v}" for k, v in sorted(counts.items())) or "-"
 
 
@@ -188,7 +186,7 @@ def random_walk_check(sim: Simulator, obj: ObjectDef, trials: int, mu: float) ->
     travel = []
     for t in range(trials):
         com = com_points(obj, trials)[t]
-        scene = SceneSpec(FloorSpec(mu, mu), to_object_spec(obj, com, 1.0, 1.0))
+        scene = SceneSpec(FloorSpec(mu, mu), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
         sim.build(scene)
         status = "ok"
         for _ in range(5):
@@ -211,7 +209,7 @@ def main() -> None:
     ap.add_argument("--height-cm", type=float, default=None, help="override every height")
     ap.add_argument("--walks", type=int, default=10, help="random 5-push walks per object")
     args = ap.parse_args()
-    objs = [load_builtin(n) for n in args.objects] if args.objects else builtin_objects()
+    objs = list(load_objects(args.objects or None).values())
     if args.height_cm is not None:
         objs = [replace(o, height_cm=args.height_cm) for o in objs]
     if args.table:
@@ -244,8 +242,8 @@ def main() -> None:
         print(
             f"{obj.name:24s} {obj.height_cm:5.1f} {tip['pushes']:6d} {tip['max_tilt_deg']:8.2f} "
             f"{bad:>14s} {tip['worst']:>22s} | {sl['max_slide_cm']:8.1f} "
-            f"{sl['travel_cm']:9.1f} {sl['status']:>9s} | {_fmt(w01['statuses']):>16s} "
-            f"{_fmt(w1['statuses']):>12s}"
+            f"{sl['travel_cm']:9.1f} {sl['status']:>9s} | {_counts(w01['statuses']):>16s} "
+            f"{_counts(w1['statuses']):>12s}"
         )
     sim.close()
     for mu, ws in walks.items():
@@ -254,7 +252,7 @@ def main() -> None:
             for k, v in w["statuses"].items():
                 tot[k] = tot.get(k, 0) + v
         far = max(w["max_travel_cm"] for w in ws)
-        print(f"random walks, floor mu {mu}: {_fmt(tot)}; farthest end from centre {far:.1f} cm")
+        print(f"random walks, floor mu {mu}: {_counts(tot)}; farthest end from centre {far:.1f} cm")
     print(
         f"\n{total_push} tipping pushes, {total_bad} not ok, worst tilt {all_tilt:.2f} deg; "
         f"{time.perf_counter() - t0:.1f} s"

@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from comexp.backends.planar_sim import PlanarSimulator
-from comexp.objects import com_point, load_builtin, to_object_spec
-from comexp.scene import FloorSpec, SceneSpec
-from comexp.simulator import contact_push
+from comexp.experiment.objects import com_point, load_objects
+from comexp.experiment.simulator import contact_push
+from comexp.method.scene import FloorSpec, SceneSpec
 
 OBJECTS = ("rect_8x5", "l_shape", "triangle_right_11x7")
 FLOORS = ((0.1, 0.1), (1.0, 1.0), (0.1, 1.0))
@@ -42,8 +42,8 @@ SPEEDS_M_S = (0.04, 0.4)
 def cases() -> list[tuple[str, SceneSpec, object]]:
     out = []
     for name in OBJECTS:
-        od = load_builtin(name)
-        spec = to_object_spec(od, com_point(od, 0), 1.0, 0.5)
+        od = load_objects([name])[name]
+        spec = od.model(com_point(od, 0), izz_scale=1.0, mu_pusher=0.5)
         outline = np.asarray(spec.outline_m)
         for mu in FLOORS:
             for lever in LEVERS_M:

@@ -6,7 +6,7 @@
         # the same zero-CPU node with `ray start`'s defaults (log monitor, 30 % RAM store)
 
 Local: `ensure_ray(None, 2)` as a job starts it; Ray's processes are the driver's
-descendants. Join: `ensure_ray(HOST:PORT)` (workers/pool.py `JoinNode`), or with --plain a
+descendants. Join: `ensure_ray(HOST:PORT)` (workers/session.py `JoinNode`), or with --plain a
 bare `ray start --address=HOST:PORT --num-cpus=0 --block`; its processes are that session's.
 PSS (from /proc/PID/smaps_rollup) shares out pages that processes have in common, so the
 column sums to the real footprint; the figure is the mean of 3 samples 1 s apart, taken
@@ -79,24 +79,24 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--settle-s", type=float, default=8.0)
     args = ap.parse_args(argv)
 
-    from comexp.workers import pool
+    from comexp.workers import session
 
     if args.address is None:
-        pool.ensure_ray(None, 2)
+        session.ensure_ray(None, 2)
         time.sleep(args.settle_s)
         me = os.getpid()
         by_name = sample(lambda: [p for p in descendants(me) if p != me])
         report("a local job's Ray (ensure_ray(None, 2)), idle", by_name)
-        pool.shutdown_ray()
+        session.shutdown_ray()
         return
     if not args.plain:
-        pool.ensure_ray(args.address)
-        node = pool._join_node
+        session.ensure_ray(args.address)
+        node = session._join_node
         assert node is not None
         time.sleep(args.settle_s)
         by_name = sample(lambda: session_pids(node.proc.pid))
         report(f"comexp's join node ({' '.join(node.proc.args[3:])})", by_name)
-        pool.shutdown_ray()
+        session.shutdown_ray()
         return
     temp_dir = tempfile.mkdtemp(prefix="comexp-join-", dir=tempfile.gettempdir())
     cmd = [sys.executable, "-m", "ray.scripts.scripts", "start", f"--address={args.address}"]
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
         by_name = sample(lambda: session_pids(p.pid))
         report(f"plain `ray start {' '.join(cmd[4:])}`", by_name)
     finally:
-        pool.JoinNode(p, temp_dir).stop()
+        session.JoinNode(p, temp_dir).stop()
 
 
 if __name__ == "__main__":

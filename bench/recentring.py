@@ -9,15 +9,12 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from comexp.episode import EpisodeSpec, run_episode  # noqa: E402
-from comexp.objects import builtin_objects, com_points  # noqa: E402
-from comexp.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeSpec, run_episode
+from comexp.experiment.objects import com_points, load_objects
+from comexp.experiment.simulator import make_simulator
 
 
 def main() -> None:
@@ -31,7 +28,7 @@ def main() -> None:
     for recenter in (0.0, 10.0):
         outcomes: collections.Counter[str] = collections.Counter()
         errors, recentred = [], 0
-        for obj in builtin_objects():
+        for obj in load_objects().values():
             for k, com in enumerate(com_points(obj, args.coms)):
                 spec = EpisodeSpec.for_object(
                     obj,

@@ -30,15 +30,14 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
-from episode_profile import job_specs, source_digest, strided  # noqa: E402
-from memory import CLK_TCK, cpu_seconds, descendants, proc_name  # noqa: E402
+from episode_profile import job_specs, source_digest, strided
+from memory import CLK_TCK, cpu_seconds, descendants, proc_name
 
-from comexp.db import ResultsDB, episode_key  # noqa: E402
-from comexp.episode import EpisodeResult, EpisodeSpec  # noqa: E402
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.results.identity import episode_key
+from comexp.results.store import ResultsDB
 
 
 @dataclass
@@ -88,7 +87,8 @@ def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str)
     """One pool of `workers` actors runs `specs` into a fresh database."""
     import ray
 
-    from comexp.workers.pool import EpisodePool, run_and_store
+    from comexp.workers.driver import run_and_store
+    from comexp.workers.pool import EpisodePool
 
     db = ResultsDB(os.path.join(tmp, f"scaling_{workers}.db"))
     results: list[EpisodeResult] = []
@@ -145,7 +145,7 @@ def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str)
 def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
     """What `comexp` does before the first episode: Hydra + validation + grid, the resume
     query against an empty database, and Ray's start."""
-    from comexp.workers.pool import ensure_ray
+    from comexp.workers.session import ensure_ray
 
     t0 = time.perf_counter()
     specs = job_specs(backend)

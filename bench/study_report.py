@@ -4,9 +4,9 @@ vision accuracy, and cross-backend agreement of rotation signs on the same push.
 
     .venv/bin/python bench/study_report.py --db results/study.db > /tmp/study.md
 
-Every section groups with `comexp.reports.group_episodes` (the rule the tables, job reports
+Every section groups with `comexp.results.reports.group_episodes` (the rule the tables, job reports
 and plots use) and names the columns it pools; the paper's value is shown only where the
-condition is the paper's (`comexp.reports.paper_mean_cm`). Works on SQLite files and
+condition is the paper's (`comexp.results.reports.paper_mean_cm`). Works on SQLite files and
 PostgreSQL URLs. The per-object Tables II-III come from `comexp-db --db results/study.db paper`.
 """
 
@@ -20,8 +20,7 @@ from typing import Any
 
 from sqlalchemy import select
 
-from comexp.db import EPISODES, PUSHES, ResultsDB
-from comexp.reports import (
+from comexp.results.reports import (
     CONDITION_COLUMNS,
     EPISODE_COLUMNS,
     FRICTION_COLUMNS,
@@ -29,10 +28,13 @@ from comexp.reports import (
     Condition,
     fmt_num,
     group_episodes,
+    markdown_table,
     ok_error,
     paper_mean_cm,
     tables_from_rows,
 )
+from comexp.results.schema import EPISODES, PUSHES
+from comexp.results.store import ResultsDB
 
 Rows = list[dict[str, Any]]
 
@@ -43,9 +45,7 @@ def _md(header: list[str], rows: list[list[object]]) -> str:
             return "" if v != v else f"{v:.3f}"
         return str(v)
 
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
-    return "\n".join(lines)
+    return markdown_table(header, [[cell(v) for v in r] for r in rows])
 
 
 def _mean(xs: Sequence[float]) -> float:

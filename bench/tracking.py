@@ -39,10 +39,10 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs  # noqa: E402
 
-from comexp.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
-from comexp.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
-from comexp.scene import DepthImage  # noqa: E402
-from comexp.simulator import make_simulator  # noqa: E402
+from comexp.experiment.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
+from comexp.experiment.simulator import make_simulator  # noqa: E402
+from comexp.method.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
+from comexp.method.scene import DepthImage  # noqa: E402
 
 ALIAS_DEG = 10.0
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from comexp.scene import Pose2D
+from comexp.method.scene import Pose2D
 
 
 def nearby_starts(pose: Pose2D, n: int = 3) -> list[Pose2D]:

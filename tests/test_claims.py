@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from comexp.claims import claims_markdown, studies, study_claims, study_means
+from comexp.results.claims import claims_markdown, studies, study_claims, study_means
 
 BASE = {
     "backend": "planar",

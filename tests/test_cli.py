@@ -20,16 +20,17 @@ import pytest
 import yaml
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
-FAKE = [
-    "execution.runner=test_workers:fake_run",
-    "execution.simulator_factory=test_workers:FakeSimulator",
-]
+# the fake runner and simulator (no physics), through the process' test seam
+FAKE = {
+    "COMEXP_RUNNER": "test_workers:fake_run",
+    "COMEXP_SIMULATOR_FACTORY": "test_workers:FakeSimulator",
+}
 SMALL = ["grid.coms_per_object=1", "grid.izz_scales=[1]", "pusher.mu=[1.0]"]
 
 
 def _command() -> list[str]:
     script = Path(sys.executable).with_name("comexp")
-    return [str(script)] if script.exists() else [sys.executable, "-m", "comexp.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "comexp.cli.run"]
 
 
 def _env(**extra: str) -> dict[str, str]:
@@ -135,7 +136,7 @@ def test_malformed_object_file_is_one_line_with_its_position(
     tmp_path: Path, args: list[str]
 ) -> None:
     conf = _user_conf(tmp_path)
-    r = comexp(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", *FAKE)
+    r = comexp(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", **FAKE)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("comexp: error: object 'bad': "), r.stderr
@@ -209,7 +210,7 @@ def test_an_unreachable_ray_address_fails_fast(tmp_path: Path, address: str) -> 
     """Refused (nothing listens) or unanswered (TEST-NET, packets dropped): one line naming
     the address well within 30 s, where Ray alone retries for minutes; nothing written."""
     t0 = time.monotonic()
-    r = comexp(tmp_path, f"ray.address={address}", *SMALL, *FAKE, "db=results/x.db", timeout=60)
+    r = comexp(tmp_path, f"ray.address={address}", *SMALL, "db=results/x.db", timeout=60, **FAKE)
     wall_s = time.monotonic() - t0
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1, r.stderr
@@ -229,7 +230,7 @@ def test_a_port_that_is_no_ray_head_fails_in_one_line(tmp_path: Path) -> None:
     tmp = tempfile.mkdtemp(prefix="cxj-", dir="/tmp")  # short: Ray's socket paths
     try:
         t0 = time.monotonic()
-        r = comexp(tmp_path, f"ray.address={address}", *SMALL, *FAKE, "db=x.db", TMPDIR=tmp)
+        r = comexp(tmp_path, f"ray.address={address}", *SMALL, "db=x.db", TMPDIR=tmp, **FAKE)
         wall_s = time.monotonic() - t0
         leftover = os.listdir(tmp)
     finally:
@@ -274,9 +275,8 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
         "floor.mu=[1.0]",
         "pusher.mu=[1.0]",
         "db=results/t.db",
-        *FAKE,
     ]
-    r = comexp(tmp_path, *args, "grid.coms_per_object=2")
+    r = comexp(tmp_path, *args, "grid.coms_per_object=2", **FAKE)
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "t.db"
     assert rows(db, "select object, count(*) from episodes group by object") == [
@@ -298,7 +298,7 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
 
 
 def test_aniso_multirun_example(tmp_path: Path) -> None:
-    r = comexp(tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", *FAKE)
+    r = comexp(tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", **FAKE)
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "a.db"
     got = rows(
@@ -318,14 +318,14 @@ def test_aniso_multirun_example(tmp_path: Path) -> None:
 
 
 def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
-    args = [*SMALL, "floor.mu=[1.0]", "db=results/i.db", "execution.batch_size=2", *FAKE]
+    args = [*SMALL, "floor.mu=[1.0]", "db=results/i.db", "execution.batch_size=2"]
     proc = subprocess.Popen(
         [*_command(), *args],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env=_env(FAKE_RUN_SLEEP_S="0.4"),
+        env=_env(FAKE_RUN_SLEEP_S="0.4", **FAKE),
     )
     db = tmp_path / "results" / "i.db"
     deadline = time.monotonic() + 120
@@ -346,7 +346,7 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
     assert "interrupted" in err and "Traceback" not in err
     kept = rows(db, "select count(*) from episodes")[0][0]
     assert 4 <= kept < 20  # what finished was stored, before the end
-    r = comexp(tmp_path, *args)
+    r = comexp(tmp_path, *args, **FAKE)
     assert r.returncode == 0, r.stderr
     assert f"{kept} already stored, {20 - kept} to run" in r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct object) from episodes") == [(20, 20)]
@@ -379,7 +379,7 @@ def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
 def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path) -> None:
     """`backend=planar` behind the same command line: real physics, perception and estimator,
     stored with the planar physics identity."""
-    from comexp.db import ResultsDB
+    from comexp.results.store import ResultsDB
 
     r = comexp(
         tmp_path,

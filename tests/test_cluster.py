@@ -37,10 +37,11 @@ import pytest
 TESTS_DIR = str(Path(__file__).resolve().parent)
 BIN = Path(sys.executable).parent
 HEAD_IP, NODE_IP = "127.0.0.2", "127.0.0.3"
-FAKE = [
-    "execution.runner=test_workers:fake_run",
-    "execution.simulator_factory=test_workers:FakeSimulator",
-]
+# the fake runner and simulator (no physics), through the process' test seam
+FAKE = {
+    "COMEXP_RUNNER": "test_workers:fake_run",
+    "COMEXP_SIMULATOR_FACTORY": "test_workers:FakeSimulator",
+}
 # 20 objects x 2 CoMs = 40 episodes of 0.25 s: ~5 s per worker pair, time to strike part-way
 SWEEP = [
     "grid.coms_per_object=2",
@@ -49,7 +50,6 @@ SWEEP = [
     "pusher.mu=[1.0]",
     "execution.batch_size=2",
     "execution.restart_timeout_s=20",
-    *FAKE,
 ]
 N_SWEEP = 40
 _READY = re.compile(r"worker (\d+) ready: pid (\d+) on node (\S+)")
@@ -199,11 +199,14 @@ class LoopbackCluster:
         return pids[0]
 
     # drivers ----------------------------------------------------------------------------------
-    def comexp(self, cwd: Path, *args: str, prefix: tuple[str, ...] = ()) -> Driver:
+    def comexp(
+        self, cwd: Path, *args: str, prefix: tuple[str, ...] = (), fake: bool = True
+    ) -> Driver:
+        """A driver on the cluster; `fake`: the fake runner and simulator (no physics)."""
         p = subprocess.Popen(
             [*prefix, str(BIN / "comexp"), f"ray.address={self.address}", *args],
             cwd=cwd,
-            env=self.env,
+            env={**self.env, **FAKE} if fake else self.env,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -424,6 +427,7 @@ def test_real_episodes_run_on_both_nodes(cluster: LoopbackCluster, tmp_path: Pat
         "pusher.mu=[1.0]",
         "execution.batch_size=1",
         "db=c.db",
+        fake=False,
     )
     assert d.wait(timeout=600) == 0, d.out
     assert sorted(node for _, node in d.workers()) == [HEAD_IP, NODE_IP], d.out

@@ -13,15 +13,14 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
-from comexp import config as config_module
-from comexp.config import (
+from comexp.experiment import config as config_module
+from comexp.experiment.config import (
     ConfigError,
-    check_db_location,
     prepare_job,
-    sqlite_path,
     to_experiment,
 )
-from comexp.episode import EstimatorSettings
+from comexp.experiment.episode import EstimatorSettings
+from comexp.workers import session
 
 TRIANGLE = """\
 name: my_tri
@@ -101,6 +100,9 @@ def test_wrong_types_are_rejected_while_composing() -> None:
         (["episode.recenter_beyond_cm=-1"], "episode.recenter_beyond_cm"),
         (["estimator.theta_T=-1"], "estimator.theta_T"),
         (["estimator.C_bw=-1"], "estimator.C_bw"),
+        # the config once accepted 0 and the estimator refused it: one rule now, one message
+        (["estimator.C_bw=0"], "estimator.C_bw must be finite and > 0, got 0.0"),
+        (["estimator.theta_T=nan"], "estimator.theta_T must be finite"),
         (["estimator.n_push=0"], "estimator.n_push"),
         (["estimator.w=[1]"], "estimator.w"),
         (["estimator.rotation_source=magic"], "estimator.rotation_source"),
@@ -164,27 +166,6 @@ def test_malformed_object_yaml_names_file_and_position(
     assert problem in msg and "\n" not in msg
 
 
-def test_sqlite_path_forms() -> None:
-    assert sqlite_path("results/a.db") == Path("results/a.db")
-    assert sqlite_path("sqlite:///results/a.db") == Path("results/a.db")
-    assert sqlite_path("sqlite+pysqlite:////tmp/a.db") == Path("/tmp/a.db")
-    assert sqlite_path("sqlite://") is None
-    assert sqlite_path("postgresql://u@h/db") is None
-
-
-def test_db_location_checks_create_nothing(tmp_path: Path) -> None:
-    check_db_location(str(tmp_path / "new" / "deeper" / "a.db"))
-    assert list(tmp_path.iterdir()) == []
-    with pytest.raises(ConfigError, match="directory"):
-        check_db_location(str(tmp_path))
-    (tmp_path / "notes.txt").write_text("not a database")
-    with pytest.raises(ConfigError, match="not an SQLite database"):
-        check_db_location(str(tmp_path / "notes.txt"))
-    with pytest.raises(ConfigError, match="cannot create"):
-        check_db_location("/proc/comexp/a.db")
-    check_db_location("postgresql://user@localhost/comexp")  # checked when connecting
-
-
 def test_shipped_experiment_reproduces_the_papers_aniso_setting() -> None:
     exp = to_experiment(_compose("+experiment=paper_aniso", "speed=4"))
     assert (exp.floor.name, exp.floor.mu, exp.floor.orientations) == (
@@ -203,15 +184,17 @@ def test_shipped_experiment_reproduces_the_papers_aniso_setting() -> None:
     [("ray-head:6379", ("ray-head", 6379)), ("[::1]:6379", ("::1", 6379))],
 )
 def test_ray_address_parses(address: str, expected: tuple[str, int]) -> None:
-    assert config_module.parse_ray_address(address) == expected
+    assert session.parse_ray_address(address) == expected
 
 
 @pytest.mark.parametrize(
     "address", ["ray-head", "ray-head:", ":6379", "ray-head:0", "ray-head:99999", "ray://h:1"]
 )
 def test_bad_ray_addresses_are_config_errors(address: str) -> None:
+    with pytest.raises(ValueError):
+        session.check_ray_address(address)
     with pytest.raises(ConfigError, match=r"^ray\.address: "):
-        config_module.check_ray_address(address)
+        prepare_job(_compose(f"ray.address='{address}'"))
 
 
 def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None:
@@ -224,12 +207,33 @@ def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None
         raise TimeoutError("timed out")
 
     monkeypatch.setattr(socket, "create_connection", dropped)
-    with pytest.raises(ConfigError, match=r"no answer from 10\.1\.2\.3:6379 within 5 s"):
-        config_module.check_ray_address("10.1.2.3:6379")
-    assert seen == {"addr": ("10.1.2.3", 6379), "timeout": config_module.RAY_CONNECT_TIMEOUT_S}
+    with pytest.raises(ValueError, match=r"no answer from 10\.1\.2\.3:6379 within 5 s"):
+        session.check_ray_address("10.1.2.3:6379")
+    assert seen == {"addr": ("10.1.2.3", 6379), "timeout": session.RAY_CONNECT_TIMEOUT_S}
 
 
 def test_null_and_auto_need_no_probe(monkeypatch) -> None:
     monkeypatch.setattr(socket, "create_connection", lambda *a, **k: pytest.fail("probed"))
-    config_module.check_ray_address(None)
-    config_module.check_ray_address("auto")
+    session.check_ray_address(None)
+    session.check_ray_address("auto")
+
+
+def test_every_estimator_setting_has_its_knob_with_the_settings_default() -> None:
+    """The `estimator` node is written out (no reflection): a settings field added without its
+    knob, or a default that drifts from the settings', fails here."""
+    import dataclasses
+
+    from comexp.experiment.config import SETTINGS_FIELDS, EstimatorConfig
+    from comexp.method.estimator import EstimatorSettings
+
+    fields = [f.name for f in dataclasses.fields(EstimatorSettings)]
+    assert sorted(SETTINGS_FIELDS.values()) == sorted(fields)
+    assert sorted(SETTINGS_FIELDS) == sorted(f.name for f in dataclasses.fields(EstimatorConfig))
+    assert config_module.estimator_settings(EstimatorConfig()) == EstimatorSettings()
+
+
+def test_the_user_facing_config_carries_no_test_hooks() -> None:
+    """The fake runner and simulator of the tests come through the environment
+    (COMEXP_RUNNER, COMEXP_SIMULATOR_FACTORY), not through `execution.*`."""
+    exp = to_experiment(_compose())
+    assert not {"runner", "simulator_factory"} & set(vars(exp.execution))

@@ -15,10 +15,10 @@ from functools import cache
 import numpy as np
 import pytest
 
-from comexp.geometry import box_object, prism_object
-from comexp.objects import builtin_object_names, load_builtin, to_object_spec
-from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PushCommand, SceneSpec
-from comexp.simulator import PushStatus, contact_push, make_simulator
+from comexp.experiment.objects import load_objects, object_names
+from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
+from comexp.method.geometry import box_object, prism_object
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PushCommand, SceneSpec
 
 BACKENDS = ["planar", "pybullet", "mujoco"]
 PUSH_LENGTH_M = 0.03
@@ -243,7 +243,7 @@ YAWS_DEG = (0.0, 17.0, 45.0, 73.0, 90.0, 128.0, 200.0, 311.0)
 
 
 def _rect(com_cm=(1.5, 0.8), mu_pusher=0.5):
-    return to_object_spec(load_builtin("rect_8x5"), com_cm, 1.0, mu_pusher)
+    return load_objects(["rect_8x5"])["rect_8x5"].model(com_cm, izz_scale=1.0, mu_pusher=mu_pusher)
 
 
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
@@ -302,17 +302,17 @@ def _through_com_contact(outline: np.ndarray, com: np.ndarray):
 # at yaw 0.3, `-m slow` the rest (so the default suite stays within its time budget)
 THROUGH_COM = [
     pytest.param(name, k, yaw, marks=[pytest.mark.slow] if k or yaw < 0 else [])
-    for name in builtin_object_names()
+    for name in object_names()
     for k in range(2)
     for yaw in (0.3, -2.1)
 ]
 
 
 def _builtin_spec(name: str, k: int, mu_pusher: float = 1.0):
-    from comexp.objects import com_points
+    from comexp.experiment.objects import com_points
 
-    obj = load_builtin(name)
-    return to_object_spec(obj, com_points(obj, 2)[k], 1.0, mu_pusher)
+    obj = load_objects([name])[name]
+    return obj.model(com_points(obj, 2)[k], izz_scale=1.0, mu_pusher=mu_pusher)
 
 
 @pytest.mark.parametrize("speed", [0.4, 0.04], ids=["40cm_s", "4cm_s"])
@@ -483,10 +483,10 @@ def test_many_sided_object_at_rest_settles_at_once(sim):
     pybullet keeps 4 of its bottom corners in the floor contact and rocks it by ~0.02 deg; the
     old 3D settle test then waited 0.83 s here, and 5 s (not_settled) in longer episodes.
     """
-    from comexp.episode import EpisodeSpec, build_scene
-    from comexp.objects import builtin_objects, com_points
+    from comexp.experiment.episode import EpisodeSpec, build_scene
+    from comexp.experiment.objects import com_points, load_objects
 
-    obj = next(o for o in builtin_objects() if o.name == "ellipse_12x7")
+    obj = next(o for o in load_objects().values() if o.name == "ellipse_12x7")
     spec = EpisodeSpec.for_object(
         obj,
         0,

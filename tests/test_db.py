@@ -16,8 +16,11 @@ import pytest
 from sqlalchemy import create_engine, inspect
 from sqlalchemy.dialects import postgresql
 
-from comexp.db import EPISODES, EpisodeFilter, ResultsDB, episode_key
-from comexp.episode import EpisodeResult, EpisodeSpec, EstimatorSettings, PushRecord
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec, EstimatorSettings, PushRecord
+from comexp.results.filters import EpisodeFilter
+from comexp.results.identity import episode_key
+from comexp.results.schema import EPISODES
+from comexp.results.store import ResultsDB, check_location, sqlite_file
 
 EPISODE_COLUMNS = [
     "id",
@@ -301,7 +304,7 @@ WRITER = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_db import make_result
     from pathlib import Path
-    from comexp.db import ResultsDB
+    from comexp.results.store import ResultsDB
     go = Path({path!r} + ".go")
     Path({path!r} + ".ready-" + sys.argv[1]).parent.mkdir(parents=True, exist_ok=True)
     Path({path!r} + ".ready-" + sys.argv[1]).touch()
@@ -397,7 +400,7 @@ def test_readonly_open_of_wal_database_in_unwritable_directory(tmp_path: Path) -
     code = textwrap.dedent(
         f"""
         import sqlite3
-        from comexp.db import ResultsDB
+        from comexp.results.store import ResultsDB
         try:  # plain mode=ro must fail here, else this test would not test the fallback
             sqlite3.connect("file:{path}?mode=ro", uri=True).execute("select 1 from episodes")
             print("plain-ok")
@@ -429,3 +432,37 @@ def test_file_names_with_uri_characters(tmp_path: Path) -> None:
     assert sorted(p.name for p in path.parent.iterdir()) == ["r%20 x.db"]
     with ResultsDB(path, readonly=True) as ro:
         assert ro.count() == 1
+
+
+# --- the database location ---------------------------------------------------------------
+
+
+def test_sqlite_file_forms() -> None:
+    """The one parser of a location: what the pre-run check probes is what opening opens."""
+    assert sqlite_file("results/a.db") == Path("results/a.db")
+    assert sqlite_file("sqlite:///results/a.db") == Path("results/a.db")
+    assert sqlite_file("sqlite+pysqlite:////tmp/a.db") == Path("/tmp/a.db")
+    assert sqlite_file("sqlite://") is None
+    assert sqlite_file("postgresql://u@h/db") is None
+
+
+def test_db_location_checks_create_nothing(tmp_path: Path) -> None:
+    check_location(str(tmp_path / "new" / "deeper" / "a.db"))
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="directory"):
+        check_location(str(tmp_path))
+    (tmp_path / "notes.txt").write_text("not a database")
+    with pytest.raises(ValueError, match="not an SQLite database"):
+        check_location(str(tmp_path / "notes.txt"))
+    with pytest.raises(ValueError, match="cannot create"):
+        check_location("/proc/comexp/a.db")
+    check_location("postgresql://user@localhost/comexp")  # checked when connecting
+
+
+def test_location_check_and_opening_agree_on_the_file(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path}/u.db"
+    assert sqlite_file(url) == tmp_path / "u.db"
+    with ResultsDB(url) as db:
+        assert db.path == sqlite_file(url)
+    check_location(url)  # an SQLite file now: accepted
+    assert sqlite_file("sqlite:///~/a.db") == Path("~/a.db")  # SQLite does not expand ~ either

@@ -16,8 +16,8 @@ import pytest
 from test_db import make_result, sha256_file
 from test_reports import study_results
 
-from comexp.db import ResultsDB
-from comexp.dbcli import main
+from comexp.cli.query import main
+from comexp.results.store import ResultsDB
 
 
 @pytest.fixture

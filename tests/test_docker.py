@@ -102,7 +102,7 @@ def test_compose_has_a_head_two_workers_and_a_sweep_on_a_volume() -> None:
     sweep = services["sweep"]
     text = " ".join(_words(sweep["entrypoint"]) + _words(sweep["command"]))
     assert "comexp ray.address=ray-head:6379" in text
-    # comexp joins as a zero-CPU node of its own (workers/pool.py JoinNode): the container
+    # comexp joins as a zero-CPU node of its own (workers/session.py JoinNode): the container
     # starts no Ray node itself, but needs the shared memory of that node's object store
     assert "ray start" not in text
     assert sweep.get("shm_size"), "the sweep's join node keeps its object store in /dev/shm"
@@ -159,7 +159,7 @@ def test_dockerfile_installs_with_the_makefile_and_copies_what_it_needs() -> Non
     env = " ".join(args for op, args in steps if op == "ENV")
     venv = re.search(r"make install VENV=(\S+)", runs[[*runs].index(steps[install][1])])
     assert venv and f"PATH={venv.group(1)}/bin:" in env
-    assert "MUJOCO_GL=egl" in env  # headless rendering, as the Makefile exports
+    assert "MUJOCO_GL=egl" in env  # headless rendering (the backend's default), explicit here
 
 
 def test_build_context_ignore_file_keeps_what_the_image_copies() -> None:

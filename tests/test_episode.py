@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.episode import EpisodeSpec, EstimatorSettings, build_scene, run_episode
-from comexp.estimator import cross2
-from comexp.perception import render_prism_depth
-from comexp.scene import DepthImage, ObjectState, Pose2D, PushCommand, SceneSpec
-from comexp.simulator import Frame, PushOutcome, PushStatus, Simulator, make_simulator
+from comexp.experiment.episode import EpisodeSpec, EstimatorSettings, build_scene, run_episode
+from comexp.experiment.simulator import Frame, PushOutcome, PushStatus, Simulator, make_simulator
+from comexp.method.estimator import cross2
+from comexp.method.perception import render_prism_depth
+from comexp.method.scene import DepthImage, ObjectState, Pose2D, PushCommand, SceneSpec
 
 BOX_CM = ((-4.0, -2.5), (4.0, -2.5), (4.0, 2.5), (-4.0, 2.5))
 TRI_CM = ((-3.67, -2.67), (5.33, -1.67), (-0.67, 4.33))  # area centroid at the origin
@@ -256,7 +256,7 @@ def test_frames_unwrap_big_turns_of_a_symmetric_outline():
 
 
 def test_frame_counts_are_stored(tmp_path):
-    from comexp.db import ResultsDB
+    from comexp.results.store import ResultsDB
 
     sim = KinematicSim(deg_per_cm=100.0, max_turn_deg=150.0)
     res = run_episode(replace(spec_for(seed=1), camera_fps=10.0), sim)
@@ -276,7 +276,7 @@ def test_exceptions_become_error_results():
 
 
 def test_no_valid_contact_is_a_result(monkeypatch):
-    import comexp.estimator as est
+    import comexp.method.estimator as est
 
     # every contact unreachable (as for a pusher too fat for the object)
     monkeypatch.setattr(est, "reachable_contacts", lambda o, P, N, r, **k: np.zeros(len(P), bool))
@@ -314,9 +314,9 @@ def test_end_to_end_dynamic_pushing(backend):
 
 
 def test_spec_for_object_copies_the_object_definition():
-    from comexp.objects import load_builtin
+    from comexp.experiment.objects import load_objects
 
-    obj = load_builtin("l_shape")
+    obj = load_objects(["l_shape"])["l_shape"]
     spec = EpisodeSpec.for_object(
         obj,
         3,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.estimator import (
+from comexp.method.estimator import (
     ComEstimator,
     EstimatorSettings,
     ObservedPush,
@@ -211,3 +211,7 @@ def test_settings_are_validated():
         EstimatorSettings(d_metric="furlongs")
     with pytest.raises(ValueError):
         EstimatorSettings(C_bw_px=0)
+    # the rules the config used to add on its own are the settings' now
+    for bad in (dict(theta_T_deg=float("nan")), dict(w=(1.0, float("inf"))), dict(n_push=0)):
+        with pytest.raises(ValueError):
+            EstimatorSettings(**bad)

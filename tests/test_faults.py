@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
 FACTORY = "test_workers:FakeSimulator"
@@ -200,9 +200,9 @@ def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path) -> None
         "execution.batch_size=2",
         "execution.max_retries=0",
         "execution.episode_timeout_s=1",
-        "execution.runner=test_faults:faulty_run",
-        f"execution.simulator_factory={FACTORY}",
         timeout=240,
+        COMEXP_RUNNER="test_faults:faulty_run",
+        COMEXP_SIMULATOR_FACTORY=FACTORY,
     )
     out = r.stdout + r.stderr
     assert r.returncode == 0, out
@@ -267,7 +267,12 @@ def test_a_killed_local_driver_is_resumed_and_leaves_nothing_running(tmp_path: P
     from test_cli import _command, _env, rows
 
     ray_tmp = tempfile.mkdtemp(prefix="cxf-", dir="/tmp")  # Ray's temp dir: ours alone
-    env = _env(FAKE_RUN_SLEEP_S="0.25", TMPDIR=ray_tmp)
+    env = _env(
+        FAKE_RUN_SLEEP_S="0.25",
+        TMPDIR=ray_tmp,
+        COMEXP_RUNNER="test_workers:fake_run",
+        COMEXP_SIMULATOR_FACTORY=FACTORY,
+    )
     args = [
         "grid.coms_per_object=2",
         "grid.izz_scales=[1]",
@@ -275,8 +280,6 @@ def test_a_killed_local_driver_is_resumed_and_leaves_nothing_running(tmp_path: P
         "pusher.mu=[1.0]",
         "execution.batch_size=2",
         "db=results/k.db",
-        "execution.runner=test_workers:fake_run",
-        f"execution.simulator_factory={FACTORY}",
     ]
     db = tmp_path / "results" / "k.db"
     groups: list[int] = []

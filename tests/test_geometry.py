@@ -9,7 +9,7 @@ import pytest
 import shapely
 from shapely.geometry import MultiPoint, Polygon
 
-from comexp.geometry import (
+from comexp.method.geometry import (
     box_object,
     centroid,
     convex_decomposition,

@@ -8,9 +8,9 @@ import sys
 
 from hydra import compose, initialize_config_module
 
-from comexp.config import prepare_job
-from comexp.db import episode_key
-from comexp.grid import episode_seed, expand_grid, floor_conditions
+from comexp.experiment.config import prepare_job
+from comexp.experiment.grid import episode_seed, expand_grid, floor_conditions
+from comexp.results.identity import episode_key
 
 SMALL = ["grid.coms_per_object=1", "grid.izz_scales=[1]", "pusher.mu=[1.0]"]
 
@@ -87,7 +87,7 @@ def test_order_is_deterministic() -> None:
 
 def test_seeds_are_stable_across_processes() -> None:
     """Seeds must not come from Python's salted hash(): pin one and recompute elsewhere."""
-    code = "from comexp.grid import episode_seed; print(episode_seed(7, 'l_shape', 3))"
+    code = "from comexp.experiment.grid import episode_seed; print(episode_seed(7, 'l_shape', 3))"
     outs = {
         subprocess.run(
             [sys.executable, "-c", code],

@@ -197,7 +197,8 @@ def test_wheel_builds_without_warnings_and_finds_its_configs_installed(tmp_path:
     run = tmp_path / "run"
     run.mkdir()
     probe = (
-        "import sys, comexp; from comexp.cli import main; print('FROM', comexp.__file__); main()"
+        "import sys, comexp; from comexp.cli.run import main;"
+        " print('FROM', comexp.__file__); main()"
     )
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
     for args, needle in [(["--help"], "l_shape"), (["--cfg", "job", "floor=aniso"], "- yx")]:

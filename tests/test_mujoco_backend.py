@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import shapely.geometry
 
-from comexp.geometry import box_object, signed_area
-from comexp.objects import com_points, load_builtin, to_object_spec
-from comexp.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
-from comexp.simulator import PushStatus, contact_push
+from comexp.experiment.objects import com_points, load_objects
+from comexp.experiment.simulator import PushStatus, contact_push
+from comexp.method.geometry import box_object, signed_area
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
 
 mujoco_sim = pytest.importorskip("comexp.backends.mujoco_sim")
 
@@ -106,9 +106,9 @@ REPRESENTATIVE = ["triangle_equilateral_10", "ellipse_12x7", "l_shape", "u_shape
 
 @pytest.mark.parametrize("name", REPRESENTATIVE)
 def test_builtin_object_rests_renders_and_slides(sim, name):
-    obj = load_builtin(name)
+    obj = load_objects([name])[name]
     com = com_points(obj, 1)[0]
-    spec = to_object_spec(obj, com, 1.0, 0.5)
+    spec = obj.model(com, izz_scale=1.0, mu_pusher=0.5)
     scene = SceneSpec(FloorSpec(1.0, 1.0), spec, initial_pose=Pose2D(0.03, -0.02, 0.4))
     sim.build(scene)
     st = sim.object_state()
@@ -136,8 +136,8 @@ def test_builtin_object_rests_renders_and_slides(sim, name):
 
 @pytest.mark.parametrize("name", ["l_shape", "triangle_right_11x7", "u_shape"])
 def test_floor_core_is_point_symmetric_about_the_com(name):
-    obj = load_builtin(name)
-    spec = to_object_spec(obj, com_points(obj, 1)[0], 1.0, 0.5)
+    obj = load_objects([name])[name]
+    spec = obj.model(com_points(obj, 1)[0], izz_scale=1.0, mu_pusher=0.5)
     core, rim = mujoco_sim._support_points(spec.outline_m, spec.com_m, mujoco_sim.DEFAULT_CONTACT)
     c = np.asarray(spec.com_m)
     pts = np.asarray(core)

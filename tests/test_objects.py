@@ -8,18 +8,16 @@ import numpy as np
 import pytest
 from shapely.geometry import Point
 
-from comexp import geometry
-from comexp.objects import (
+from comexp.experiment.objects import (
     MIN_WIDTH_CM,
+    PACKAGE_SOURCES,
     ObjectDef,
-    builtin_object_names,
-    builtin_objects,
-    check_com,
     com_point,
     com_points,
-    load_builtin,
-    to_object_spec,
+    load_objects,
+    object_names,
 )
+from comexp.method import geometry
 
 L_OUTLINE = [[0, 0], [10, 0], [10, 4], [4, 4], [4, 8], [0, 8]]
 
@@ -34,9 +32,9 @@ def _obj(outline=None, height=2.0, name="probe"):
 
 
 def test_twenty_builtin_objects_load_and_are_valid():
-    names = builtin_object_names()
+    names = object_names()
     assert len(names) == 20
-    objs = builtin_objects()
+    objs = load_objects().values()
     assert [o.name for o in objs] == names
     kinds = {o.convex for o in objs}
     assert kinds == {True, False}, "the set must mix convex and non-convex objects"
@@ -55,27 +53,36 @@ def test_twenty_builtin_objects_load_and_are_valid():
 def test_builtin_objects_are_not_rotation_symmetric_discs():
     """The method measures rotation from the mask: a shape whose second moments are isotropic
     AND that has many vertices (a near-disc) would hide its rotation."""
-    for o in builtin_objects():
+    for o in load_objects().values():
         if len(o.outline_cm) > 12:
             jx, jy = geometry.second_moments(o.outline_cm)
             assert abs(jx - jy) / (jx + jy) > 0.05, f"{o.name}: looks like a disc"
 
 
-def test_load_builtin_unknown_name_lists_the_known_ones():
-    with pytest.raises(ValueError, match="unknown; built-in objects are"):
-        load_builtin("no_such_object")
+def test_unknown_name_lists_the_known_ones():
+    with pytest.raises(ValueError, match="unknown object 'no_such_object' \\(available: arrow, "):
+        load_objects(["no_such_object"])
 
 
-def test_load_from_file_and_name_must_match(tmp_path):
-    f = tmp_path / "my_box.yaml"
-    f.write_text("outline_cm: [[0, 0], [6, 0], [6, 5], [0, 5]]\nheight_cm: 2\n")
-    o = ObjectDef.load(f)
-    assert o.name == "my_box"  # defaults to the file stem
-    assert o.area_cm2 == pytest.approx(30.0)
-    g = tmp_path / "other.yaml"
-    g.write_text("name: my_box\noutline_cm: [[0, 0], [6, 0], [6, 5], [0, 5]]\nheight_cm: 2\n")
-    with pytest.raises(ValueError, match="differs from its file name"):
-        ObjectDef.load(g)
+def test_load_from_a_config_dir_and_name_must_match(tmp_path):
+    """The loader the run uses, on a `--config-dir`: name defaults to the file's, a different
+    `name` inside is refused, the package's objects stay first in the search path."""
+    (tmp_path / "object").mkdir()
+    (tmp_path / "object" / "my_box.yaml").write_text(
+        "outline_cm: [[0, 0], [6, 0], [6, 5], [0, 5]]\nheight_cm: 2\n"
+    )
+    (tmp_path / "object" / "other.yaml").write_text(
+        "name: my_box\noutline_cm: [[0, 0], [6, 0], [6, 5], [0, 5]]\nheight_cm: 2\n"
+    )
+    (tmp_path / "object" / "l_shape.yaml").write_text("outline_cm: [[0, 0], [9, 0], [0, 9]]\n")
+    sources = [*PACKAGE_SOURCES, {"provider": "test", "schema": "file", "path": str(tmp_path)}]
+    assert {"my_box", "other", "arrow"} <= set(object_names(sources))
+    o = load_objects(["my_box"], sources)["my_box"]
+    assert o.name == "my_box" and o.area_cm2 == pytest.approx(30.0)
+    with pytest.raises(ValueError, match="its config says name 'my_box'"):
+        load_objects(["other"], sources)
+    assert load_objects(["l_shape"], sources)["l_shape"] == load_objects(["l_shape"])["l_shape"]
+    assert "my_box" not in object_names()  # the package's own objects only, by default
 
 
 # --- re-centring and orientation -------------------------------------------------------------
@@ -137,26 +144,11 @@ def test_min_width_bound_is_the_documented_one():
     assert ok.min_width_cm == pytest.approx(MIN_WIDTH_CM)
 
 
-def test_com_outside_footprint_is_rejected():
-    o = _obj()  # the L; its notch is the upper right quadrant of the bounding box
-    notch = (4.0, 3.0)  # inside the bounding box, outside the L (original frame (8, 6) ...)
-    assert not o.polygon.contains(Point(notch))
-    with pytest.raises(ValueError, match="outside the footprint"):
-        check_com(o, notch)
-    with pytest.raises(ValueError, match="outside the footprint"):
-        to_object_spec(o, notch, izz_scale=1.0, mu_pusher=0.5)
-    x_min = min(x for x, _ in o.outline_cm)
-    near_edge = (x_min + 0.2, -1.0)
-    with pytest.raises(ValueError, match="closer than the margin"):
-        check_com(o, near_edge)
-    check_com(o, (x_min + 0.2, -1.0), margin_cm=0.1)  # accepted with a smaller margin
-
-
 # --- CoM sampling ----------------------------------------------------------------------------
 
 
 def test_com_points_are_deterministic_and_prefix_stable():
-    o = load_builtin("l_shape")
+    o = load_objects(["l_shape"])["l_shape"]
     ten = com_points(o, 10)
     assert com_points(o, 10) == ten
     assert com_points(o, 3) == ten[:3]
@@ -170,10 +162,10 @@ def test_com_points_depend_on_the_name_not_on_process_hash():
     import subprocess
     import sys
 
-    o = load_builtin("l_shape")
+    o = load_objects(["l_shape"])["l_shape"]
     code = (
-        "from comexp.objects import load_builtin, com_points;"
-        "print(repr(com_points(load_builtin('l_shape'), 2)))"
+        "from comexp.experiment.objects import load_objects, com_points;"
+        "print(repr(com_points(load_objects(['l_shape'])['l_shape'], 2)))"
     )
     out = subprocess.run(
         [sys.executable, "-c", code],
@@ -191,7 +183,7 @@ def test_com_points_depend_on_the_name_not_on_process_hash():
 
 @pytest.mark.parametrize("name", ["u_shape", "cross_12", "triangle_right_11x7", "arrow"])
 def test_com_points_respect_the_margin_and_cover_the_shape(name):
-    o = load_builtin(name)
+    o = load_objects([name])[name]
     pts = np.asarray(com_points(o, 200, margin_cm=1.0))
     poly = o.polygon
     for x, y in pts:
@@ -205,7 +197,7 @@ def test_com_points_respect_the_margin_and_cover_the_shape(name):
 
 
 def test_com_sampling_empty_shrunk_footprint_is_a_clear_error():
-    o = load_builtin("rect_12x4")
+    o = load_objects(["rect_12x4"])["rect_12x4"]
     with pytest.raises(ValueError, match="rect_12x4.*smaller CoM margin"):
         com_points(o, 1, margin_cm=2.5)
 
@@ -213,17 +205,32 @@ def test_com_sampling_empty_shrunk_footprint_is_a_clear_error():
 # --- conversion to the simulator's model -----------------------------------------------------
 
 
-def test_to_object_spec_converts_units():
-    o = load_builtin("t_shape")
+def test_model_converts_units_as_every_episode_does():
+    o = load_objects(["t_shape"])["t_shape"]
     com = com_points(o, 1)[0]
-    spec = to_object_spec(o, com, izz_scale=10.0, mu_pusher=0.1)
+    spec = o.model(com, izz_scale=10.0, mu_pusher=0.1)
     assert spec.name == "t_shape"
     assert spec.com_m == pytest.approx((com[0] / 100, com[1] / 100))
     assert spec.height_m == pytest.approx(o.height_cm / 100)
     assert spec.mass_kg == 0.2 and spec.mu_pusher == 0.1
     assert np.asarray(spec.outline_m) * 100 == pytest.approx(np.asarray(o.outline_cm))
     assert len(spec.convex_parts_m) == 2
-    base = to_object_spec(o, com, izz_scale=1.0, mu_pusher=0.1)
+    from comexp.experiment.episode import EpisodeSpec, build_scene
+
+    ep = EpisodeSpec.for_object(
+        o,
+        0,
+        com,
+        backend="planar",
+        floor="iso",
+        mu_floor_x=1.0,
+        mu_floor_y=1.0,
+        mu_pusher=0.1,
+        speed_cm_s=40.0,
+        izz_scale=10.0,
+    )
+    assert build_scene(ep).obj == spec  # the one conversion
+    base = o.model(com, izz_scale=1.0, mu_pusher=0.1)
     assert spec.izz_kg_m2 == pytest.approx(10 * base.izz_kg_m2)
 
 
@@ -258,8 +265,8 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
     as the sampler allows (a corner of the footprint shrunk by the 1 cm margin), pushed
     straight through the CoM from every reachable side. Tipping needs roughly
     mu * (height / 2) > distance from the CoM to the leading edge."""
-    from comexp.scene import FloorSpec, PusherSpec, SceneSpec
-    from comexp.simulator import PushStatus, contact_push, make_simulator
+    from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
+    from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
 
     if backend == "mujoco":
         # Known, documented in docs/physics_mujoco.md ("Tipping of adversarial CoMs", "Root
@@ -274,12 +281,12 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
     sim = make_simulator(backend)
     worst = (0.0, "")
     try:
-        for obj in builtin_objects():
+        for obj in load_objects().values():
             inner = obj.polygon.buffer(-1.0, join_style="mitre")
             corners = np.asarray(inner.exterior.coords)[:-1]
             com = tuple(corners[np.argmax(np.hypot(corners[:, 0], corners[:, 1]))])
             for c, n in _through_com_pushes(obj, com, r_cm):
-                scene = SceneSpec(FloorSpec(1.0, 1.0), to_object_spec(obj, com, 1.0, 1.0))
+                scene = SceneSpec(FloorSpec(1.0, 1.0), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
                 sim.build(scene)
                 cmd = contact_push(c / 100.0, n, 0.03, 0.4, scene.pusher.radius_m)
                 out = sim.push(cmd)
@@ -295,14 +302,14 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
 def test_every_builtin_object_builds_with_izz_x10(backend):
     """Regression: raising Ixx + Iyy to exactly Izz lost the equality to rounding and MuJoCo
     refused 15% of the Izz x 10 episodes ("inertia must satisfy A + B >= C")."""
-    from comexp.scene import FloorSpec, SceneSpec
-    from comexp.simulator import make_simulator
+    from comexp.experiment.simulator import make_simulator
+    from comexp.method.scene import FloorSpec, SceneSpec
 
     sim = make_simulator(backend)
     try:
-        for obj in builtin_objects():
+        for obj in load_objects().values():
             for com in com_points(obj, 2):
-                spec = to_object_spec(obj, com, izz_scale=10.0, mu_pusher=1.0)
+                spec = obj.model(com, izz_scale=10.0, mu_pusher=1.0)
                 assert spec.ixx_kg_m2 + spec.iyy_kg_m2 > spec.izz_kg_m2
                 sim.build(SceneSpec(FloorSpec(1.0, 1.0), spec))
                 assert sim.object_state().tilt_deg < 0.5

@@ -6,10 +6,11 @@ from dataclasses import replace
 
 import pytest
 
-from comexp.db import ResultsDB, episode_key
-from comexp.episode import EpisodeResult, EpisodeSpec
-from comexp.scene import SimSettings
-from comexp.simulator import physics_identity
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.simulator import physics_identity
+from comexp.method.scene import SimSettings
+from comexp.results.identity import episode_key
+from comexp.results.store import ResultsDB
 
 
 def _spec(**kw) -> EpisodeSpec:

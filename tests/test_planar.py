@@ -14,9 +14,9 @@ import pytest
 
 from comexp.backends.floor_friction import FrictionSettings, WinklerPressure, footprint_samples
 from comexp.backends.planar_sim import PlanarSimulator
-from comexp.geometry import box_object, prism_object
-from comexp.scene import FloorSpec, SceneSpec, SimSettings
-from comexp.simulator import PushStatus, contact_push
+from comexp.experiment.simulator import PushStatus, contact_push
+from comexp.method.geometry import box_object, prism_object
+from comexp.method.scene import FloorSpec, SceneSpec, SimSettings
 
 RECT = np.array([(-0.04, -0.025), (0.04, -0.025), (0.04, 0.025), (-0.04, 0.025)])
 
@@ -139,7 +139,7 @@ def test_the_same_episode_gives_the_same_numbers():
 
 def test_rendered_pose_matches_the_state():
     """The camera is the exact ray-cast of the prism at the model's pose."""
-    from comexp.perception import observe
+    from comexp.method.perception import observe
 
     sim = PlanarSimulator()
     out = _pushed_box(sim, 0.1, 0.4)
@@ -169,7 +169,7 @@ def test_engine_friction_impulse_holds_and_then_slides():
     exactly (static friction); a fast slide loses mu m g dt of momentum per step and moves the
     pressure centre forward."""
     from comexp.backends.floor_friction import FootprintFriction
-    from comexp.scene import PusherSpec
+    from comexp.method.scene import PusherSpec
 
     obj = box_object(0.08, 0.05, 0.015)
     fr = FootprintFriction(obj, 0.5, 0.5, PusherSpec())

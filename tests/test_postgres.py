@@ -22,7 +22,8 @@ from pathlib import Path
 import pytest
 from test_cli import FAKE, comexp
 
-from comexp.db import SCHEMA_VERSION, ResultsDB, redact_url
+from comexp.results.schema import SCHEMA_VERSION
+from comexp.results.store import ResultsDB, redact_url
 
 PASSWORD = "Pw-7f3kQz_s3cret"  # distinctive, so a grep for it cannot match anything else
 USER = "comexp_test"
@@ -226,7 +227,7 @@ def test_two_concurrent_jobs_store_every_episode_once(pg: PgServer, tmp_path: Pa
     def job(name: str) -> None:
         d = tmp_path / name
         d.mkdir()
-        results[name] = comexp(d, *FAKE, *grid, f"db={url}", FAKE_RUN_SLEEP_S="0.05")
+        results[name] = comexp(d, *grid, f"db={url}", FAKE_RUN_SLEEP_S="0.05", **FAKE)
 
     threads = [threading.Thread(target=job, args=(n,)) for n in ("a", "b")]
     for t in threads:
@@ -276,7 +277,7 @@ def test_missing_driver_is_one_line(tmp_path: Path) -> None:
     """Without psycopg installed: one line naming the extra to install, no traceback."""
     code = (
         "import sys; sys.modules['psycopg'] = None; sys.modules['psycopg2'] = None\n"
-        "from comexp.dbcli import main\n"
+        "from comexp.cli.query import main\n"
         "sys.exit(main(['--db', 'postgresql://u:pw@127.0.0.1:1/x', 'summary']))\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

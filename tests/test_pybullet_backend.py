@@ -8,9 +8,9 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from comexp.geometry import box_object, prism_object
-from comexp.scene import FloorSpec, Pose2D, PushCommand, SceneSpec
-from comexp.simulator import PushStatus, contact_push, make_simulator
+from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
+from comexp.method.geometry import box_object, prism_object
+from comexp.method.scene import FloorSpec, Pose2D, PushCommand, SceneSpec
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +115,7 @@ def test_free_rigid_pusher_keeps_its_height_and_orientation(sim):
     """The pusher is a heavy free body driven by velocity: gravity is cancelled and contact
     torques must not tilt it, or it would touch the floor or push at the wrong height (a
     sphere at the line contact's resultant height, `pusher_contact_height_m`)."""
-    from comexp.simulator import pusher_contact_height_m
+    from comexp.experiment.simulator import pusher_contact_height_m
 
     scene = SceneSpec(FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.03, mu_pusher=1.0))
     z0 = pusher_contact_height_m(scene.pusher, scene.obj.height_m)

@@ -14,11 +14,12 @@ import numpy as np
 import pytest
 from test_db import make_result
 
-from comexp import paper
-from comexp.db import EpisodeFilter, ResultsDB, episode_key
-from comexp.episode import EpisodeResult, EstimatorSettings
-from comexp.plots import make_plots
-from comexp.reports import (
+from comexp.experiment.episode import EpisodeResult, EstimatorSettings
+from comexp.results import paper
+from comexp.results.filters import EpisodeFilter
+from comexp.results.identity import episode_key
+from comexp.results.plots import make_plots
+from comexp.results.reports import (
     CONDITION_COLUMNS,
     PAPER_POOL,
     POOLED,
@@ -35,6 +36,7 @@ from comexp.reports import (
     tables_csv,
     write_job_reports,
 )
+from comexp.results.store import ResultsDB
 
 OBJECTS = ("obj1", "obj2", "obj10")
 FRICTIONS = (

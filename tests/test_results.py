@@ -17,12 +17,13 @@ from test_cli import comexp
 from test_db import make_result
 
 import comexp as package
-from comexp.db import ResultsDB, canonical_json, episode_key
-from comexp.dbcli import main as dbcli
-from comexp.episode import EstimatorSettings
-from comexp.plots import reconstruct_regions
-from comexp.reports import condition_tables
-from comexp.results import spec_from_json
+from comexp.cli.query import main as dbcli
+from comexp.experiment.episode import EstimatorSettings
+from comexp.results.api import spec_from_json
+from comexp.results.identity import canonical_json, episode_key
+from comexp.results.plots import reconstruct_regions
+from comexp.results.reports import condition_tables
+from comexp.results.store import ResultsDB
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 TINY = [

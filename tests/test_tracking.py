@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-from comexp.config import ConfigError, prepare_job
-from comexp.db import SCHEMA_VERSION, ResultsDB
-from comexp.episode import EpisodeSpec, build_scene
-from comexp.perception import (
+from comexp.experiment.config import ConfigError, prepare_job
+from comexp.experiment.episode import EpisodeSpec, build_scene
+from comexp.experiment.simulator import Frame, at_rest, contact_push, make_simulator
+from comexp.method.perception import (
     PoseTracker,
     mask_pusher,
     object_mask,
@@ -23,8 +23,9 @@ from comexp.perception import (
     observe_boundary,
     perceive_first,
 )
-from comexp.scene import Pose2D
-from comexp.simulator import Frame, at_rest, contact_push, make_simulator
+from comexp.method.scene import Pose2D
+from comexp.results.schema import SCHEMA_VERSION
+from comexp.results.store import ResultsDB
 
 BOX_CM = ((-4.0, -2.5), (4.0, -2.5), (4.0, 2.5), (-4.0, 2.5))
 
@@ -147,7 +148,7 @@ def test_camera_fps_is_bounded_by_a_commodity_camera(fps):
 
 
 def test_camera_fps_reaches_every_episode():
-    from comexp.grid import expand_grid
+    from comexp.experiment.grid import expand_grid
 
     job = prepare_job(
         _compose("camera.fps=15", "grid.objects=[rect_8x5]", "grid.coms_per_object=1")
@@ -157,7 +158,7 @@ def test_camera_fps_reaches_every_episode():
     job0 = prepare_job(
         _compose("camera.fps=0", "grid.objects=[rect_8x5]", "grid.coms_per_object=1")
     )
-    from comexp.db import episode_key
+    from comexp.results.identity import episode_key
 
     specs0 = expand_grid(job0.cfg, job0.objects, estimator=job0.estimator)
     assert episode_key(specs[0]) != episode_key(specs0[0])  # fps is part of the identity

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
 RUNNER = "test_workers:fake_run"
@@ -148,7 +148,7 @@ def test_import_dotted_forms() -> None:
 def ray_session():
     import ray
 
-    from comexp.workers.pool import ensure_ray
+    from comexp.workers.session import ensure_ray
 
     if ray.is_initialized():
         ray.shutdown()
@@ -223,7 +223,7 @@ def test_run_and_store_writes_while_running(ray_session, tmp_path) -> None:
     """The last batch cannot finish before something was stored: it waits for a file the
     store creates. (This replaced `first write > 0.1 s before the end`, a wall-clock gap that
     measured 0.21-0.22 s in 3 runs here: a margin a stalled worker start-up eats.)"""
-    from comexp.workers.pool import run_and_store
+    from comexp.workers.driver import run_and_store
 
     specs = make_specs(24)
     gate = tmp_path / "stored"
@@ -262,7 +262,7 @@ class _FakePool:
 
 
 def test_interrupted_run_keeps_what_finished() -> None:
-    from comexp.workers.pool import run_and_store
+    from comexp.workers.driver import run_and_store
 
     stored: list[EpisodeResult] = []
 
@@ -278,7 +278,7 @@ def test_interrupted_run_keeps_what_finished() -> None:
 
 
 def test_run_and_store_counts_failures() -> None:
-    from comexp.workers.pool import Progress, run_and_store
+    from comexp.workers.driver import Progress, run_and_store
 
     specs = make_specs(4) + make_specs(2, "raise")
 

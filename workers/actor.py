@@ -30,10 +30,15 @@ from typing import Any
 
 import ray
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
-DEFAULT_RUNNER = "comexp.episode:run_episode"
-DEFAULT_SIMULATOR_FACTORY = "comexp.simulator:make_simulator"
+DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
+DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.simulator:make_simulator"
+# The test seam of a whole `comexp` process (tests/test_cli.py runs the command with a fake
+# runner and simulator): dotted paths in the environment, read where the pool is made, so that
+# the user-facing config carries no test hooks.
+RUNNER_ENV = "COMEXP_RUNNER"
+SIMULATOR_FACTORY_ENV = "COMEXP_SIMULATOR_FACTORY"
 
 
 def import_dotted(path: str) -> Callable[..., Any]:
@@ -206,7 +211,7 @@ class EpisodeWorker:
         if not spec.physics or spec.backend != self.backend:
             return ""
         if self._physics is None:
-            from comexp.simulator import physics_identity
+            from comexp.experiment.simulator import physics_identity
 
             try:
                 self._physics = physics_identity(self.backend, options=self.backend_options)

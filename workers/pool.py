@@ -9,31 +9,28 @@ job keeps what it finished.
 
 from __future__ import annotations
 
-import atexit
 import collections
 import contextlib
 import logging
-import math
 import os
-import re
-import secrets
-import shutil
-import signal
-import subprocess
-import sys
-import tempfile
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import ray
 import ray.exceptions as rex
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
-from .actor import DEFAULT_RUNNER, DEFAULT_SIMULATOR_FACTORY, RemoteEpisodeWorker, failed_result
+from .actor import (
+    DEFAULT_RUNNER,
+    DEFAULT_SIMULATOR_FACTORY,
+    RUNNER_ENV,
+    SIMULATOR_FACTORY_ENV,
+    RemoteEpisodeWorker,
+    failed_result,
+)
 
 log = logging.getLogger("comexp.pool")
 
@@ -49,239 +46,6 @@ _DEATH_ERRORS: tuple[type[BaseException], ...] = (
 
 class PoolError(RuntimeError):
     """The pool cannot make progress (workers fail to start, or keep dying)."""
-
-
-# --- the Ray session: once per process ----------------------------------------------------
-
-_ray_started_here = False
-_join_node: JoinNode | None = None
-JOIN_TIMEOUT_S = 60.0  # `ray start` joins a reachable cluster in ~5 s on 2 busy cores
-# `ray start` against a port that answers but is no Ray GCS: its first warning, after ~5 s
-_JOIN_FAILED = re.compile(r"^.*(Failed to connect to|Timed out while waiting for GCS).*$", re.M)
-
-
-def worker_env(extra: dict[str, str] | None = None) -> dict[str, str]:
-    """Environment for worker processes: headless MuJoCo rendering, no usage stats."""
-    env = {
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-        "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl"),
-        "RAY_USAGE_STATS_ENABLED": "0",
-    }
-    env.update(extra or {})
-    return env
-
-
-def ray_temp_dir() -> str:
-    """Short path under the system temp dir: Ray's unix sockets live below it (~107 chars)."""
-    uid = os.getuid() if hasattr(os, "getuid") else 0
-    return os.path.join(tempfile.gettempdir(), f"comexp-ray-{uid}")
-
-
-def ensure_ray(
-    address: str | None = None,
-    num_cpus: int = 2,
-    *,
-    log_to_driver: bool = False,
-    env: dict[str, str] | None = None,
-) -> None:
-    """Start (address None) or join (`auto`, host:port) Ray, once per process.
-
-    A host:port address is joined through a zero-CPU node of this process's own (`JoinNode`):
-    Ray 2.60 attaches a driver to a Ray node on the driver's machine, and a laptop or the
-    compose `sweep` container runs none. `auto` means "this machine is a cluster node".
-    Later calls reuse the session, so the jobs of a multirun share it; the session (and the
-    join node) is shut down at exit when this process started it. Raises `PoolError` (one
-    line naming the address) when the cluster cannot be joined.
-    """
-    global _ray_started_here, _join_node
-    if ray.is_initialized():
-        return
-    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
-    kwargs: dict[str, Any] = dict(logging_level=logging.WARNING, log_to_driver=log_to_driver)
-    if address is None:
-        # A local Ray's processes inherit this environment; a job-level runtime_env would
-        # cost ~2 s per actor start (runtime-env agent, no prestarted workers).
-        for k, v in worker_env(env).items():
-            if k in (env or {}) or k not in os.environ:
-                os.environ[k] = v
-        _in_memory_auth_token()
-        # "local" forces a new local instance even when RAY_ADDRESS is set.
-        kwargs.update(
-            address="local",
-            num_cpus=num_cpus,
-            include_dashboard=False,
-            _temp_dir=ray_temp_dir(),
-        )
-    else:
-        # Other nodes have their own environment: ship ours with the job.
-        kwargs.update(address=address, runtime_env={"env_vars": worker_env(env)})
-        if address != "auto":
-            _join_node = JoinNode.start(address)
-            kwargs["_temp_dir"] = _join_node.temp_dir  # attach to that node, no other
-    if not _ray_started_here:
-        atexit.register(shutdown_ray)
-    _ray_started_here = True
-    try:
-        ray.init(**kwargs)
-    except (ConnectionError, RuntimeError) as e:
-        shutdown_ray()
-        where = {None: "a new local Ray", "auto": "a local Ray node (ray.address=auto)"}.get(
-            address, address
-        )
-        raise PoolError(f"cannot connect to {where}: {_one_line(e)}") from None
-    if _join_node is not None:
-        log.info(
-            "joined the Ray cluster at %s as a zero-CPU node (temp dir %s)",
-            address,
-            _join_node.temp_dir,
-        )
-
-
-def _in_memory_auth_token() -> None:
-    """Token auth for a local Ray with a token that lives only in the environment (inherited
-    by Ray's processes). Left to itself, Ray 2.5x writes one to ~/.ray/auth_token and warns.
-    A user's own RAY_AUTH_* settings win."""
-    if any(os.environ.get(k) for k in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")):
-        return
-    try:
-        from ray._raylet import Config
-    except ImportError:  # another Ray version: keep its default behaviour
-        return
-    os.environ["RAY_AUTH_MODE"] = "token"
-    os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
-    Config.initialize("")  # Ray caches its config at import; re-read the environment
-
-
-def shutdown_ray() -> None:
-    global _join_node
-    if ray.is_initialized():
-        ray.shutdown()
-    if _join_node is not None:
-        _join_node.stop()
-        _join_node = None
-
-
-@dataclass
-class JoinNode:
-    """A zero-CPU Ray node on the driver's machine, so that `ray.init(address=HOST:PORT)`
-    finds a local node there (what Ray 2.60 requires of a driver; the workaround the Ray
-    maintainers give in ray-project/ray#4090 and #32933). It schedules nothing: episodes run
-    on the cluster's CPUs.
-
-    `ray start --block` in a session of its own and a temp dir of its own: `stop` ends
-    exactly its processes (never `ray stop`, which ends every Ray on the machine). If the
-    driver dies without `stop` (SIGKILL), the kernel sends `ray start` SIGTERM
-    (PR_SET_PDEATHSIG) and it shuts its node down. No log monitor: no worker runs here.
-    """
-
-    proc: subprocess.Popen
-    temp_dir: str
-
-    @property
-    def log_path(self) -> str:
-        return os.path.join(self.temp_dir, "ray-start.log")
-
-    @classmethod
-    def start(cls, address: str, timeout_s: float = JOIN_TIMEOUT_S) -> JoinNode:
-        temp_dir = tempfile.mkdtemp(prefix="comexp-join-", dir=tempfile.gettempdir())
-        cmd = [
-            sys.executable,
-            "-m",
-            "ray.scripts.scripts",
-            "start",
-            f"--address={address}",
-            "--num-cpus=0",
-            "--num-gpus=0",
-            # The driver's own objects only (results come back inlined or fetched one batch
-            # at a time): 200 MB, not 30% of RAM, fits a container's /dev/shm.
-            "--object-store-memory=200000000",
-            f"--temp-dir={temp_dir}",
-            "--include-log-monitor=false",
-            "--disable-usage-stats",
-            "--block",
-        ]
-        with open(os.path.join(temp_dir, "ray-start.log"), "wb") as out:
-            proc = subprocess.Popen(
-                cmd,
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,  # no Ctrl-C from the terminal: the driver stops it
-                # unbuffered: Ray's GCS warnings reach the log as they happen, not at exit
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                preexec_fn=_die_with_parent(),
-            )
-        node = cls(proc, temp_dir)
-        try:
-            node._wait_started(address, timeout_s)
-        except BaseException:
-            node.stop(grace_s=0)  # not joined: nothing to drain (it may sit in a GCS call)
-            raise
-        return node
-
-    def _wait_started(self, address: str, timeout_s: float) -> None:
-        """Until `ray start` says the node runs; fail fast when it cannot reach a GCS there
-        (an open port that is not a Ray head: `ray start` would retry forever)."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            text = _read_text(self.log_path)
-            if "Ray runtime started" in text:
-                return
-            failed = _JOIN_FAILED.search(text)
-            rc = self.proc.poll()
-            if rc is not None or failed or time.monotonic() > deadline:
-                lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-                why = (
-                    failed.group(0).strip()
-                    if failed
-                    else f"`ray start` exited with {rc}"
-                    if rc is not None
-                    else f"`ray start` did not join within {timeout_s:g} s"
-                )
-                if not failed and lines:
-                    why += f": {lines[-1]}"
-                why = re.sub(r"^\[[^]]*\]\s*(\S+:\d+:\s*)?", "", why)  # Ray's log prefix
-                raise PoolError(f"cannot join the Ray cluster at {address}: {why[:300]}")
-            time.sleep(0.2)
-
-    def stop(self, grace_s: float = 20.0) -> None:
-        """SIGTERM to `ray start` (it stops its node's processes), then SIGKILL to whatever is
-        left in its process group, looked up before the leader is reaped (no pid reuse)."""
-        pid = self.proc.pid
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGTERM)
-        deadline = time.monotonic() + grace_s
-        while time.monotonic() < deadline:
-            if os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None:
-                break
-            time.sleep(0.1)
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(pid, signal.SIGKILL)
-        self.proc.wait()
-        shutil.rmtree(self.temp_dir, ignore_errors=True)
-
-
-def _die_with_parent() -> Callable[[], None] | None:
-    """A preexec_fn: SIGTERM to the child when the thread that started it ends (Linux
-    prctl PR_SET_PDEATHSIG; Hydra runs jobs in the main thread, so: when the driver ends)."""
-    if sys.platform != "linux" or threading.current_thread() is not threading.main_thread():
-        return None
-    import ctypes
-
-    libc = ctypes.CDLL(None, use_errno=True)
-
-    def preexec() -> None:
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-    return preexec
-
-
-def _read_text(path: str) -> str:
-    try:
-        with open(path, errors="replace") as f:
-            return f.read()
-    except OSError:
-        return ""
 
 
 # --- the pool --------------------------------------------------------------------------------
@@ -332,8 +96,8 @@ class EpisodePool:
         backend: str,
         workers: int = 2,
         *,
-        runner: str = DEFAULT_RUNNER,
-        simulator_factory: str = DEFAULT_SIMULATOR_FACTORY,
+        runner: str | None = None,
+        simulator_factory: str | None = None,
         runner_kwargs: dict[str, Any] | None = None,
         batch_size: int = 8,
         max_retries: int = 2,
@@ -353,11 +117,14 @@ class EpisodePool:
         self.inflight_per_worker = inflight_per_worker
         self.start_timeout_s = start_timeout_s
         self.replace_timeout_s = replace_timeout_s
+        # None: the process' own (`RUNNER_ENV`, `SIMULATOR_FACTORY_ENV`), else the real ones
+        runner = runner or os.environ.get(RUNNER_ENV) or DEFAULT_RUNNER
+        factory = simulator_factory or os.environ.get(SIMULATOR_FACTORY_ENV)
         # episode_timeout_s: per-episode limit enforced in the worker (see workers.actor)
         self._actor_args = (
             backend,
             runner,
-            simulator_factory,
+            factory or DEFAULT_SIMULATOR_FACTORY,
             runner_kwargs,
             episode_timeout_s,
             kill_grace_s,
@@ -392,7 +159,7 @@ class EpisodePool:
             ) from None
         except rex.RayError as e:
             self.close()
-            raise PoolError(f"workers failed to start: {_one_line(e)}") from None
+            raise PoolError(f"workers failed to start: {one_line(e)}") from None
         for i, (slot, info) in enumerate(zip(self._slots, infos, strict=True)):
             self._note_ready(i, slot, info)
 
@@ -424,6 +191,17 @@ class EpisodePool:
         starting: dict[Any, _Slot] = {}
         consecutive_deaths = 0
 
+        def death(e: BaseException, doing: str) -> None:
+            """A worker died (starting, or running batches): fail the pool when it cannot
+            start at all, or when deaths keep coming with no batch completing in between
+            (systemic); otherwise the caller replaces the worker and carries on."""
+            nonlocal consecutive_deaths
+            if isinstance(e, rex.RayActorError) and e.actor_init_failed:
+                raise PoolError(f"a worker failed to {doing}: {one_line(e)}") from None
+            consecutive_deaths += 1
+            if consecutive_deaths > 2 * len(self._slots) * (self.max_retries + 1) + 4:
+                raise PoolError(f"workers keep dying: {one_line(e)}") from None
+
         def fill() -> None:
             for _ in range(self.inflight_per_worker):  # round robin: spread work evenly
                 for slot in self._slots:
@@ -454,11 +232,7 @@ class EpisodePool:
                 try:
                     info = ray.get(ref)
                 except _DEATH_ERRORS as e:
-                    if isinstance(e, rex.RayActorError) and e.actor_init_failed:
-                        raise PoolError(f"a worker failed to restart: {_one_line(e)}") from None
-                    consecutive_deaths += 1
-                    if consecutive_deaths > 2 * len(self._slots) * (self.max_retries + 1) + 4:
-                        raise PoolError(f"workers keep dying: {_one_line(e)}") from None
+                    death(e, "restart")
                     self._replace(slot, starting)  # e.g. placed on a node that then died
                     continue
                 slot.ready_ref = None
@@ -469,12 +243,7 @@ class EpisodePool:
             try:
                 results = ray.get(ref)
             except _DEATH_ERRORS as e:
-                if isinstance(e, rex.RayActorError) and e.actor_init_failed:
-                    raise PoolError(f"a worker failed to start: {_one_line(e)}") from None
-                consecutive_deaths += 1
-                # a run of deaths with no batch completing in between is systemic
-                if consecutive_deaths > 2 * len(self._slots) * (self.max_retries + 1) + 4:
-                    raise PoolError(f"workers keep dying: {_one_line(e)}") from None
+                death(e, "start")
                 # Batches that finished before the death still have their results; of the
                 # rest, the oldest was running (actor tasks run in submission order).
                 done, _ = ray.wait(slot.pending, num_returns=len(slot.pending), timeout=0)
@@ -502,7 +271,7 @@ class EpisodePool:
             except rex.RayError as e:  # run_batch itself raised: the actor is alive
                 inflight.pop(ref)
                 slot.pending.remove(ref)
-                log.warning("a batch failed: %s", _one_line(e))
+                log.warning("a batch failed: %s", one_line(e))
                 yield from self._requeue(queue, [batch], charged=0)
                 continue
             inflight.pop(ref)
@@ -581,109 +350,8 @@ def _kill(actor: Any) -> None:
         ray.kill(actor, no_restart=True)
 
 
-def _one_line(e: BaseException) -> str:
+def one_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     # Ray's messages start with boilerplate; the last non-empty line names the cause.
     lines = [t.strip() for t in text if t.strip()]
     return f"{type(e).__name__}: {lines[-1] if lines else ''}"[:300]
-
-
-# --- the driver: progress and the database ---------------------------------------------------
-
-
-@dataclass
-class RunStats:
-    total: int
-    done: int = 0
-    failed: int = 0
-    stored: int = 0
-    wall_s: float = 0.0
-    failures: collections.Counter[str] = field(default_factory=collections.Counter)
-
-
-class Progress:
-    """tqdm on a terminal; plain periodic log lines otherwise (log files, CI)."""
-
-    def __init__(self, total: int, desc: str = "", *, tty: bool | None = None, every_s=10.0):
-        self.total = total
-        self.desc = desc
-        self.every_s = every_s
-        self.t0 = time.monotonic()
-        self._last = self.t0
-        self._bar = None
-        if tty if tty is not None else sys.stderr.isatty():
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True, smoothing=0.1)
-
-    def update(self, n: int, stats: RunStats) -> None:
-        if self._bar is not None:
-            self._bar.update(n)
-            self._bar.set_postfix(failed=stats.failed, refresh=False)
-            return
-        now = time.monotonic()
-        if now - self._last >= self.every_s or stats.done == self.total:
-            self._last = now
-            log.info("%s", self.line(stats))
-
-    def line(self, stats: RunStats) -> str:
-        el = time.monotonic() - self.t0
-        rate = stats.done / el if el > 0 else 0.0
-        eta = (self.total - stats.done) / rate if rate > 0 else math.inf
-        eta_s = "?" if math.isinf(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
-        return (
-            f"{self.desc} {stats.done}/{self.total} done, {stats.failed} failed, "
-            f"{rate:.1f} ep/s, ETA {eta_s}"
-        ).strip()
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-
-
-def run_and_store(
-    pool: EpisodePool,
-    specs: Sequence[EpisodeSpec],
-    store: Callable[[list[EpisodeResult]], int],
-    *,
-    flush_every: int = 32,
-    flush_interval_s: float = 2.0,
-    progress: Progress | None = None,
-) -> RunStats:
-    """Run `specs` on the pool and hand results to `store` in chunks as they arrive.
-
-    Whatever arrived is stored even when the run is interrupted (Ctrl-C, a pool error), so
-    rerunning the same command resumes where this one stopped.
-    """
-    stats = RunStats(total=len(specs))
-    pending: list[EpisodeResult] = []
-    t0 = time.monotonic()
-    last_flush = t0
-
-    def flush() -> None:
-        nonlocal pending, last_flush
-        if pending:
-            stats.stored += store(pending)
-        pending = []
-        last_flush = time.monotonic()
-
-    try:
-        for results in pool.run(specs):
-            pending.extend(results)
-            stats.done += len(results)
-            for r in results:
-                if r.status != "ok":
-                    stats.failed += 1
-                    stats.failures[r.failure or "unknown"] += 1
-            if progress is not None:
-                progress.update(len(results), stats)
-            if len(pending) >= flush_every or time.monotonic() - last_flush >= flush_interval_s:
-                flush()
-    finally:
-        try:
-            flush()
-        finally:
-            stats.wall_s = time.monotonic() - t0
-            if progress is not None:
-                progress.close()
-    return stats

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from comexp import paper
-from comexp.reports import FRICTION_COLUMNS, Condition, group_episodes
+from comexp.results import paper
+from comexp.results.reports import FRICTION_COLUMNS, Condition, group_episodes
 
 # The columns a claim varies; the others define a study (see the module docstring).
 VARIED = ("speed_cm_s", "izz_scale", *FRICTION_COLUMNS)

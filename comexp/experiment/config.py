@@ -3,34 +3,26 @@
 The dataclasses below are registered in Hydra's ConfigStore as the schema of `conf/config.yaml`,
 so a wrong *type* (``speed=abc``) is rejected by Hydra while composing. Wrong *values*
 (negative speed, unknown object, unwritable database, ...) are caught by `prepare_job`, which
-the CLI runs before Hydra creates any output folder (see `comexp.cli`): bad input must cost
+the CLI runs before Hydra creates any output folder (see `comexp.cli.run`): bad input must cost
 nothing and leave nothing behind.
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
-import re
-import socket
-import tempfile
-import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
-from comexp.episode import EstimatorSettings
+from comexp.experiment.episode import EstimatorSettings
+from comexp.experiment.objects import ObjectDef, load_objects
 
 FLOOR_KINDS = ("iso", "aniso")
 ANISO_ORIENTATIONS = ("xy", "yx")
-ROTATION_SOURCES = ("vision", "oracle")
-OBJECT_GROUP = "object"
 SCHEMA_NAME = "comexp_schema"
 
 
@@ -49,7 +41,7 @@ class BackendConfig:
     floor_friction: str = "model"
 
     def options(self) -> dict[str, str]:
-        """The simulator's constructor options (`comexp.simulator.make_simulator`)."""
+        """The simulator's constructor options (`comexp.experiment.simulator.make_simulator`)."""
         return {} if self.name == "planar" else {"floor_friction": self.floor_friction}
 
 
@@ -111,7 +103,7 @@ class RayConfig:
 
 @dataclass
 class ExecutionConfig:
-    """How episodes are run; the dotted paths exist so tests can inject cheap fakes."""
+    """How episodes are run."""
 
     batch_size: int = 8  # episodes per Ray task: ~0.5 ms overhead vs ~100 ms per episode
     max_retries: int = 2  # a batch whose worker dies is retried this often, then split
@@ -119,64 +111,46 @@ class ExecutionConfig:
     # An episode still running after this is failed with `failure="timeout"` and its worker
     # carries on (episodes take ~0.1-0.3 s; quasi-static ones a few s): catches hangs only.
     episode_timeout_s: float = 120.0
-    runner: str = "comexp.episode:run_episode"
-    simulator_factory: str = "comexp.simulator:make_simulator"
 
 
-_UNIT_SUFFIX = re.compile(r"_(deg|rad|px|cm|mm|m|s|ms|kg)$")
+_EST = EstimatorSettings()  # the defaults are the settings' own: written once, there
 
 
-def _config_name(field_name: str) -> str:
-    """`theta_T_deg` -> `theta_T`: the command line names estimator knobs as the paper does."""
-    return _UNIT_SUFFIX.sub("", field_name)
+@dataclass
+class EstimatorConfig:
+    """The `estimator` node: the knobs of `comexp.method.estimator.EstimatorSettings`, named
+    on the command line as the paper names them (units dropped: deg, px). `SETTINGS_FIELDS`
+    maps each onto its settings field (and database column); tests/test_config.py checks that
+    every settings field has its knob here."""
+
+    w: list[float] = field(default_factory=lambda: list(_EST.w))
+    theta_T: float = _EST.theta_T_deg  # deg
+    C_bw: float = _EST.C_bw_px  # px
+    n_push: int = _EST.n_push
+    rotation_source: str = _EST.rotation_source  # vision | oracle
+    d_metric: str = _EST.d_metric
+    d_signed: bool = _EST.d_signed
+    cos_signed: bool = _EST.cos_signed
+    band_signed: bool = _EST.band_signed
+    contact_spacing: float = _EST.contact_spacing_px  # px
+    check_reachability: bool = _EST.check_reachability
 
 
-def _config_type(tp: Any) -> Any:
-    """OmegaConf has no tuples: a tuple field becomes a list of its element type."""
-    if typing.get_origin(tp) is tuple:
-        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
-        return list[args[0]] if args else list[Any]
-    if typing.get_origin(tp) is typing.Literal:
-        return str
-    return tp
-
-
-def _estimator_fields() -> list[tuple[str, str, Any, Any]]:
-    """(config name, settings field name, config type, dataclasses.field) for every field of
-    `EstimatorSettings`, so knobs added there appear on the command line without edits here."""
-    hints = typing.get_type_hints(EstimatorSettings)
-    names = [f.name for f in dataclasses.fields(EstimatorSettings)]
-    short = [_config_name(n) for n in names]
-    out = []
-    for f, name, cfg_name in zip(dataclasses.fields(EstimatorSettings), names, short, strict=True):
-        if short.count(cfg_name) > 1 or cfg_name in names and cfg_name != name:
-            cfg_name = name  # stripping the unit would collide: keep the full name
-        if f.default is not dataclasses.MISSING:
-            default = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
-        else:
-            raise TypeError(f"EstimatorSettings.{name} needs a default to be configurable")
-        if isinstance(default, tuple):
-            default = list(default)
-        if isinstance(default, list):
-            spec = field(default_factory=lambda d=default: list(d))
-        else:
-            spec = field(default=default)
-        out.append((cfg_name, name, _config_type(hints[name]), spec))
-    return out
-
-
-_ESTIMATOR_FIELDS = _estimator_fields()
-
-EstimatorConfig = dataclasses.make_dataclass(
-    "EstimatorConfig",
-    [(cfg_name, tp, spec) for cfg_name, _, tp, spec in _ESTIMATOR_FIELDS],
-)
-EstimatorConfig.__doc__ = (
-    "Estimator knobs, named as in the paper (units stripped): mapped field by field onto "
-    "`comexp.episode.EstimatorSettings`."
-)
+# config knob (`estimator.<knob>`) -> EstimatorSettings field: the one place the two names meet
+SETTINGS_FIELDS: dict[str, str] = {
+    "w": "w",
+    "theta_T": "theta_T_deg",
+    "C_bw": "C_bw_px",
+    "n_push": "n_push",
+    "rotation_source": "rotation_source",
+    "d_metric": "d_metric",
+    "d_signed": "d_signed",
+    "cos_signed": "cos_signed",
+    "band_signed": "band_signed",
+    "contact_spacing": "contact_spacing_px",
+    "check_reachability": "check_reachability",
+}
+_CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 
 
 @dataclass
@@ -213,7 +187,7 @@ register_configs()
 def estimator_settings(est: Any) -> EstimatorSettings:
     """Map the `estimator` node onto `EstimatorSettings` (lists back to tuples)."""
     kwargs = {}
-    for cfg_name, name, _, _ in _ESTIMATOR_FIELDS:
+    for cfg_name, name in SETTINGS_FIELDS.items():
         value = getattr(est, cfg_name) if not isinstance(est, Mapping) else est[cfg_name]
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value)
@@ -259,13 +233,13 @@ def _check_list(key: str, values: Sequence[float], *, minimum: float, strict: bo
 
 def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     """Value checks that a schema cannot express; returns the estimator settings."""
-    from comexp.simulator import backend_names
+    from comexp.experiment.simulator import backend_names
 
     if cfg.backend.name not in backend_names():
         raise ConfigError(
             f"unknown backend {cfg.backend.name!r} (choose one of: {', '.join(backend_names())})"
         )
-    from comexp.simulator import FLOOR_FRICTION_CHOICES
+    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES
 
     if cfg.backend.floor_friction not in FLOOR_FRICTION_CHOICES:
         raise ConfigError(
@@ -340,200 +314,15 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
 
 
 def _validate_estimator(est: Any) -> EstimatorSettings:
-    known = {f.name for f in dataclasses.fields(est)}
-    if "w" in known and (len(est.w) != 2 or not all(_finite(v) for v in est.w)):
-        raise ConfigError(f"estimator.w must be two finite numbers, got {list(est.w)}")
-    for key in ("theta_T", "C_bw"):
-        if key in known and (not _finite(getattr(est, key)) or getattr(est, key) < 0):
-            raise ConfigError(f"estimator.{key} must be >= 0, got {getattr(est, key)!r}")
-    if "n_push" in known and est.n_push < 1:
-        raise ConfigError(f"estimator.n_push must be >= 1, got {est.n_push}")
-    if "rotation_source" in known and est.rotation_source not in ROTATION_SOURCES:
-        raise ConfigError(
-            f"estimator.rotation_source must be one of {', '.join(ROTATION_SOURCES)}, "
-            f"got {est.rotation_source!r}"
-        )
+    """The estimator node through `EstimatorSettings`' own checks (the one set of rules), its
+    message naming the config key (`theta_T_deg` -> `estimator.theta_T`)."""
     try:
         return estimator_settings(est)
-    except (TypeError, ValueError) as e:  # the settings' own checks, if any
-        raise ConfigError(f"estimator: {str(e).splitlines()[0]}") from None
-
-
-# --- database location ---------------------------------------------------------------------
-
-
-def sqlite_path(db: str) -> Path | None:
-    """The file behind `db` when it is SQLite (plain path or sqlite:/// URL); None otherwise
-    (another SQLAlchemy URL, or SQLite in memory)."""
-    if "://" not in db:
-        return Path(db).expanduser()
-    scheme, _, rest = db.partition("://")
-    if not scheme.startswith("sqlite"):
-        return None
-    rest = rest.split("?", 1)[0]
-    if rest in ("", "/", "/:memory:") or rest.startswith("/file:"):
-        return None
-    return Path(rest[1:]).expanduser() if rest.startswith("/") else Path(rest)
-
-
-def check_db_location(db: str) -> None:
-    """Fail early, leaving nothing behind, when an SQLite file could not be created or written.
-
-    Probes for real (permission bits lie for root and on read-only mounts): an existing file
-    is opened for update, otherwise a temporary file is created in the nearest existing parent.
-    """
-    path = sqlite_path(db)
-    if path is None:
-        return
-    if path.is_dir():
-        raise ConfigError(f"db: {str(path)!r} is a directory, not a database file")
-    if path.exists():
-        try:
-            with open(path, "r+b") as f:
-                head = f.read(16)
-        except OSError as e:
-            raise ConfigError(f"db: cannot write to {str(path)!r}: {e.strerror}") from None
-        if head and head != b"SQLite format 3\x00":
-            raise ConfigError(f"db: {str(path)!r} exists and is not an SQLite database")
-        return
-    parent = path.absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ConfigError(f"db: cannot create {str(path)!r}: {str(parent)!r} is not a directory")
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError as e:
-        raise ConfigError(
-            f"db: cannot create {str(path)!r}: {str(parent)!r} is not writable ({e.strerror})"
-        ) from None
-
-
-RAY_CONNECT_TIMEOUT_S = 5.0
-
-
-def parse_ray_address(address: str) -> tuple[str, int]:
-    """HOST:PORT (a cluster's GCS address, `[v6addr]:PORT` too) as (host, port), or
-    `ConfigError`. Ray Client addresses (`ray://`) would need `ray[client]` (grpcio), which is
-    not a dependency: comexp joins clusters as a node instead (workers/pool.py `JoinNode`)."""
-    if "://" in address:
-        raise ConfigError(
-            f"ray.address: {address!r}: Ray Client (ray://) is not supported; "
-            "give the cluster's HOST:PORT (the head's --port, 6379 by default)"
-        )
-    host, sep, port = address.rpartition(":")
-    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ConfigError(f"ray.address: expected null, auto or HOST:PORT, got {address!r}")
-    return host, int(port)
-
-
-def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
-    """Fail within `timeout_s`, before anything is written, when no server listens at a
-    HOST:PORT `ray.address`. Left to itself Ray retries an unreachable address for minutes,
-    printing GCS warnings. (`auto` names the local node, which Ray finds or fails on at once.)
-    """
-    if address is None or address == "auto":
-        return
-    host, port = parse_ray_address(address)
-    try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            pass
-    except socket.gaierror as e:
-        raise ConfigError(f"ray.address: cannot resolve host {host!r} ({e.strerror})") from None
-    except TimeoutError:
-        raise ConfigError(
-            f"ray.address: no answer from {address} within {timeout_s:g} s (is the Ray head up?)"
-        ) from None
-    except OSError as e:
-        reason = e.strerror or type(e).__name__
-        raise ConfigError(
-            f"ray.address: cannot reach {address}: {reason} (is the Ray head up?)"
-        ) from None
-
-
-# --- objects from every config source -------------------------------------------------------
-
-
-def config_repository(sources: Sequence[Mapping[str, Any]]) -> Any:
-    """A Hydra config repository over the job's search path (`hydra.runtime.config_sources`):
-    the package's `conf/`, `--config-dir`, `hydra.searchpath` entries and the ConfigStore."""
-    from hydra._internal.config_repository import ConfigRepository
-    from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
-
-    csp = ConfigSearchPathImpl()
-    for s in sources:
-        csp.append(provider=str(s["provider"]), path=f"{s['schema']}://{s['path']}")
-    return ConfigRepository(csp)
-
-
-def available_objects(repo: Any) -> list[str]:
-    return list(repo.get_group_options(OBJECT_GROUP))
-
-
-def yaml_error_line(e: yaml.YAMLError) -> str:
-    """`malformed YAML in FILE, line L, column C: problem (context at line, column)`: PyYAML's
-    multi-line message in one line, positions 1-based as editors count them."""
-    if not isinstance(e, yaml.MarkedYAMLError) or e.problem_mark is None:
-        text = [t.strip() for t in str(e).splitlines() if t.strip()]
-        return f"malformed YAML: {' '.join(text[:2]) or type(e).__name__}"
-    mark = e.problem_mark
-    out = f"malformed YAML in {mark.name}, line {mark.line + 1}, column {mark.column + 1}: "
-    out += e.problem or "syntax error"
-    ctx = e.context_mark
-    if e.context and ctx is not None:
-        where = f"line {ctx.line + 1}, column {ctx.column + 1}"
-        out += f" ({e.context} at {where})" if ctx.name == mark.name else f" ({e.context})"
-    return out
-
-
-def load_object_mapping(repo: Any, name: str) -> dict[str, Any]:
-    """Raw mapping of `object/<name>` from the first source that has it."""
-    try:
-        res = repo.load_config(f"{OBJECT_GROUP}/{name}")
-    except yaml.YAMLError as e:  # Hydra's config sources pass PyYAML's errors through
-        raise ConfigError(f"object {name!r}: {yaml_error_line(e)}") from None
-    if res is None:
-        raise ConfigError(f"unknown object {name!r}")
-    node = res.config
-    if OmegaConf.is_config(node) and "defaults" in node:
-        node = OmegaConf.masked_copy(node, [k for k in node if k != "defaults"])
-    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
-    if not isinstance(data, dict):
-        raise ConfigError(f"object {name!r}: config must be a mapping")
-    return data
-
-
-def load_objects(repo: Any, names: Sequence[str] | None) -> dict[str, Any]:
-    """`comexp.objects.ObjectDef` per name (all objects in the group when `names` is None)."""
-    from comexp.objects import ObjectDef
-
-    available = available_objects(repo)
-    if names is None:
-        if not available:
-            raise ConfigError("no objects found in the config group 'object'")
-        names = available
-    missing = [n for n in names if n not in available]
-    if missing:
-        shown = ", ".join(available[:30]) + (" ..." if len(available) > 30 else "")
-        raise ConfigError(f"unknown object {missing[0]!r} (available: {shown or 'none'})")
-    out = {}
-    for n in names:
-        try:
-            obj = ObjectDef.from_mapping(load_object_mapping(repo, n), default_name=n)
-        except ConfigError:
-            raise
-        except (TypeError, ValueError, KeyError) as e:
-            msg = str(e).splitlines()[0]
-            raise ConfigError(
-                msg if msg.startswith("object ") else f"object {n!r}: {msg}"
-            ) from None
-        if obj.name != n:
-            # users select objects by file name: a different `name` inside would be ambiguous
-            raise ConfigError(f"object {n!r}: its config says name {obj.name!r}")
-        out[n] = obj
-    return out
+    except (TypeError, ValueError) as e:
+        msg = str(e).splitlines()[0]
+        field_name, _, rest = msg.partition(" ")
+        key = _CONFIG_NAMES.get(field_name)
+        raise ConfigError(f"estimator.{key} {rest}" if key else f"estimator: {msg}") from None
 
 
 # --- everything a job needs, checked ---------------------------------------------------------
@@ -543,7 +332,7 @@ def load_objects(repo: Any, names: Sequence[str] | None) -> dict[str, Any]:
 class PreparedJob:
     cfg: ExperimentConfig
     estimator: EstimatorSettings
-    objects: dict[str, Any]
+    objects: dict[str, ObjectDef]
 
 
 def prepare_job(cfg: DictConfig) -> PreparedJob:
@@ -560,8 +349,20 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
         from hydra.core.hydra_config import HydraConfig
 
         sources = HydraConfig.get().runtime.config_sources
-    repo = config_repository(OmegaConf.to_container(sources, resolve=False))
-    objects = load_objects(repo, exp.grid.objects)
-    check_db_location(exp.db)
-    check_ray_address(exp.ray.address)
+    try:
+        objects = load_objects(exp.grid.objects, OmegaConf.to_container(sources, resolve=False))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    from comexp.results.store import check_location
+
+    try:
+        check_location(exp.db)
+    except ValueError as e:
+        raise ConfigError(f"db: {e}") from None
+    from comexp.workers.session import check_ray_address
+
+    try:
+        check_ray_address(exp.ray.address)
+    except ValueError as e:
+        raise ConfigError(f"ray.address: {e}") from None
     return PreparedJob(cfg=exp, estimator=est, objects=objects)

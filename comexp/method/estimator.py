@@ -59,12 +59,15 @@ class EstimatorSettings:
             )
         if self.d_metric not in D_METRICS:
             raise ValueError(f"d_metric must be one of {D_METRICS}, got {self.d_metric!r}")
-        if len(self.w) != 2:
-            raise ValueError(f"w needs two weights, got {self.w}")
-        if self.theta_T_deg < 0 or self.C_bw_px <= 0:
-            raise ValueError("theta_T_deg must be >= 0 and C_bw_px > 0")
-        if self.n_push < 0:
-            raise ValueError(f"n_push must be >= 0, got {self.n_push}")
+        # the one set of rules: the config checks its `estimator` node through these
+        if len(self.w) != 2 or not np.all(np.isfinite(self.w)):
+            raise ValueError(f"w must be two finite weights, got {list(self.w)}")
+        if not (np.isfinite(self.theta_T_deg) and self.theta_T_deg >= 0):
+            raise ValueError(f"theta_T_deg must be finite and >= 0, got {self.theta_T_deg!r}")
+        if not (np.isfinite(self.C_bw_px) and self.C_bw_px > 0):
+            raise ValueError(f"C_bw_px must be finite and > 0, got {self.C_bw_px!r}")
+        if self.n_push < 1:
+            raise ValueError(f"n_push must be >= 1, got {self.n_push}")
         if self.contact_spacing_px <= 0:
             raise ValueError("contact_spacing_px must be > 0")
 

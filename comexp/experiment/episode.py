@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from comexp.estimator import ComEstimator, EstimatorSettings
-from comexp.geometry import prism_object
-from comexp.perception import (
+from comexp.experiment.objects import object_model
+from comexp.experiment.simulator import Frame, Simulator, contact_push
+from comexp.method.estimator import ComEstimator, EstimatorSettings
+from comexp.method.perception import (
     PerceptionError,
     PoseTracker,
     mask_pusher,
@@ -24,8 +25,7 @@ from comexp.perception import (
     observe_boundary,
     perceive_first,
 )
-from comexp.scene import FloorSpec, Pose2D, PusherSpec, SceneSpec
-from comexp.simulator import Frame, Simulator, contact_push, wrap_angle
+from comexp.method.scene import FloorSpec, Pose2D, PusherSpec, SceneSpec, wrap_angle
 
 __all__ = [
     "EpisodeResult",
@@ -60,9 +60,9 @@ class EpisodeSpec:
     # an experimenter would; 0 disables. A 40 cm/s push slides an object ~11 cm on the mu 0.1
     # floor, so without this about 15% of 5-push episodes there leave the 0.6 m floor.
     recenter_beyond_cm: float = 10.0
-    # What determines the physics (`comexp.simulator.physics_identity`: backend model revision,
-    # engine version, backend and protocol settings); part of the episode's identity, so a
-    # database is never resumed across physics versions. "" = not pinned (library use).
+    # What determines the physics (`comexp.experiment.simulator.physics_identity`: backend
+    # model revision, engine version, backend and protocol settings); part of the episode's
+    # identity, so a database is never resumed across physics versions. "" = not pinned.
     physics: str = ""
     # Tracking frames per second taken while the object moves during a push (`camera.fps`);
     # 0 = the images before and after each push only. Vision only (the oracle needs none).
@@ -73,8 +73,8 @@ class EpisodeSpec:
         cls, obj: Any, com_index: int, com_cm: Sequence[float], **conditions: Any
     ) -> EpisodeSpec:
         """The episode of CoM `com_index` (at `com_cm`) of an object definition (anything with
-        `name`, `outline_cm`, `height_cm`, e.g. `comexp.objects.ObjectDef`); `conditions` are the
-        remaining fields (backend, floor, frictions, speed, Izz, ...)."""
+        `name`, `outline_cm`, `height_cm`, e.g. `comexp.experiment.objects.ObjectDef`);
+        `conditions` are the remaining fields (backend, floor, frictions, speed, Izz, ...)."""
         return cls(
             object=obj.name,
             outline_cm=tuple((float(x), float(y)) for x, y in obj.outline_cm),
@@ -94,7 +94,9 @@ class PushRecord:
     dir_y: float
     rotation_deg: float  # measured (vision or oracle)
     rotation_true_deg: float
-    decision: str  # ccw | cw | band
+    # ccw | cw | band; ccw-empty | cw-empty | band-empty when that update would have left no
+    # point, so the region was kept (`comexp.method.estimator.update_region`)
+    decision: str
     region_px: int  # region size after the update
     n_frames: int = 0  # tracking frames the rotation was measured through (0: before/after)
 
@@ -123,14 +125,14 @@ def initial_yaw_rad(seed: int) -> float:
 
 def build_scene(spec: EpisodeSpec, pusher: PusherSpec | None = None) -> SceneSpec:
     """The simulator scene of an episode (centimetres -> metres), object at the floor centre."""
-    obj = prism_object(
+    obj = object_model(
         spec.object,
-        [(x / 100.0, y / 100.0) for x, y in spec.outline_cm],
-        spec.height_cm / 100.0,
-        (spec.com_cm[0] / 100.0, spec.com_cm[1] / 100.0),
-        mass_kg=spec.mass_kg,
+        spec.outline_cm,
+        spec.height_cm,
+        spec.com_cm,
         izz_scale=spec.izz_scale,
         mu_pusher=spec.mu_pusher,
+        mass_kg=spec.mass_kg,
     )
     return SceneSpec(
         floor=FloorSpec(spec.mu_floor_x, spec.mu_floor_y),

@@ -1,5 +1,11 @@
 """The objects of the study: one YAML file per object (a footprint polygon in cm plus a height),
-validation, the seeded CoM points and the conversion to the simulator's `ObjectSpec`.
+the one loader of those files, validation, the seeded CoM points and the one conversion to the
+simulator's `ObjectSpec` (`object_model`).
+
+Loading: `load_objects(names, sources)` reads `object/<name>.yaml` from a job's config sources
+(Hydra's `hydra.runtime.config_sources`: the package's `conf/`, `--config-dir`,
+`hydra.searchpath` entries), the first source that has the file winning as in Hydra's search
+path; without `sources`, from the package's `conf/` alone (the built-in objects: tests, bench).
 
 Object frame: the footprint is re-centred on its area centroid (as `geometry.prism_object`
 does) and put in counter-clockwise order; x/y keep the axes of the config file. Every CoM the
@@ -15,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import importlib.resources
 import math
+import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -25,10 +32,11 @@ from typing import Any
 import numpy as np
 import shapely
 import yaml
+from omegaconf import OmegaConf
 from shapely.geometry import Point, Polygon
 
-from comexp import geometry
-from comexp.scene import ObjectSpec
+from comexp.method import geometry
+from comexp.method.scene import ObjectSpec
 
 # Validation bounds (documented in docs/objects.md). The camera sees the floor at ~2.8 mm/px,
 # so an object thinner than MIN_WIDTH_CM covers only a dozen pixels across and its rotation is
@@ -85,21 +93,6 @@ class ObjectDef:
             description=description,
         )
 
-    @classmethod
-    def load(cls, path: str | Path) -> ObjectDef:
-        """Read one object file; the name defaults to the file's stem and must match it
-        (users select objects by file name)."""
-        path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except (OSError, yaml.YAMLError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise ValueError(f"object {path.stem!r}: cannot read {path}: {first}") from e
-        obj = cls.from_mapping(data if data is not None else {}, default_name=path.stem)
-        if obj.name != path.stem:
-            raise ValueError(f"object {obj.name!r}: name differs from its file name {path.name!r}")
-        return obj
-
     @property
     def polygon(self) -> Polygon:
         return Polygon(self.outline_cm)
@@ -124,6 +117,20 @@ class ObjectDef:
 
     def convex_parts_cm(self) -> list[np.ndarray]:
         return geometry.convex_decomposition(self.outline_cm)
+
+    def model(
+        self, com_cm: Sequence[float], *, izz_scale: float, mu_pusher: float, mass_kg: float = 0.2
+    ) -> ObjectSpec:
+        """The simulator's rigid body of this object with its CoM at `com_cm` (`object_model`)."""
+        return object_model(
+            self.name,
+            self.outline_cm,
+            self.height_cm,
+            com_cm,
+            izz_scale=izz_scale,
+            mu_pusher=mu_pusher,
+            mass_kg=mass_kg,
+        )
 
 
 def _parse_number(name: str, what: str, value: Any) -> float:
@@ -183,24 +190,6 @@ def _validate(name: str, outline: np.ndarray, height_cm: float) -> None:
         )
 
 
-def check_com(obj: ObjectDef, com_cm: Sequence[float], margin_cm: float = MIN_COM_MARGIN_CM):
-    """Raise ValueError unless the CoM (object frame, cm) is inside the footprint by at least
-    `margin_cm`: a CoM on or near the edge makes the object tip at the slightest push."""
-    x, y = (float(com_cm[0]), float(com_cm[1]))
-    if not (math.isfinite(x) and math.isfinite(y)):
-        raise ValueError(f"object {obj.name!r}: CoM ({x}, {y}) cm is not finite")
-    poly = obj.polygon
-    pt = Point(x, y)
-    if not poly.contains(pt):
-        raise ValueError(f"object {obj.name!r}: CoM ({x:.3f}, {y:.3f}) cm is outside the footprint")
-    d = poly.exterior.distance(pt)
-    if d < margin_cm:
-        raise ValueError(
-            f"object {obj.name!r}: CoM ({x:.3f}, {y:.3f}) cm is {d:.3f} cm from the edge, "
-            f"closer than the margin {margin_cm} cm"
-        )
-
-
 def _name_key(name: str) -> list[int]:
     """Stable 128-bit key of the name (Python's hash() is randomised per process)."""
     digest = hashlib.sha256(name.encode("utf-8")).digest()
@@ -244,21 +233,22 @@ def com_points(
     return [com_point(obj, k, base_seed, margin_cm) for k in range(n)]
 
 
-def to_object_spec(
-    obj: ObjectDef,
+def object_model(
+    name: str,
+    outline_cm: Sequence[Sequence[float]],
+    height_cm: float,
     com_cm: Sequence[float],
+    *,
     izz_scale: float,
     mu_pusher: float,
     mass_kg: float = 0.2,
-    com_margin_cm: float = MIN_COM_MARGIN_CM,
 ) -> ObjectSpec:
-    """The simulator's rigid-body model (SI units) of `obj` with its CoM at `com_cm`."""
-    check_com(obj, com_cm, com_margin_cm)
-    outline_m = np.asarray(obj.outline_cm) / 100.0
+    """The simulator's rigid-body model (SI units) of an object definition (cm) with its CoM at
+    `com_cm`: the one conversion, used by every episode (`episode.build_scene`)."""
     return geometry.prism_object(
-        obj.name,
-        outline_m,
-        obj.height_cm / 100.0,
+        name,
+        [(x / 100.0, y / 100.0) for x, y in outline_cm],
+        height_cm / 100.0,
         (com_cm[0] / 100.0, com_cm[1] / 100.0),
         mass_kg=mass_kg,
         izz_scale=izz_scale,
@@ -266,31 +256,107 @@ def to_object_spec(
     )
 
 
-# --- the built-in objects: conf/object/*.yaml inside the installed package ------------------
+# --- the one loader: object/<name>.yaml from a job's config sources ---------------------------
+
+OBJECT_GROUP = "object"
+# The package's own config tree alone: the built-in objects (conf/object/*.yaml).
+PACKAGE_SOURCES: tuple[Mapping[str, str], ...] = (
+    {"provider": "main", "schema": "pkg", "path": "comexp.conf"},
+)
 
 
-def _builtin_dir() -> Traversable:
-    return importlib.resources.files("comexp.conf").joinpath("object")
+def _source_root(source: Mapping[str, Any]) -> Traversable | None:
+    """The folder behind one Hydra config source; None for the ConfigStore (`structured://`,
+    which holds the schema only) and for a package that is not installed."""
+    schema, path = str(source["schema"]), str(source["path"])
+    if schema == "file":
+        return Path(os.path.realpath(path))  # as Hydra's file source names its files
+    if schema == "pkg":
+        module, _, sub = path.partition("/")
+        try:
+            root = importlib.resources.files(module)
+        except ModuleNotFoundError:
+            return None
+        return root.joinpath(sub) if sub else root
+    return None
 
 
-def builtin_object_names() -> list[str]:
-    """Names of the objects shipped in the package's conf/object/, sorted."""
-    return sorted(
-        Path(f.name).stem
-        for f in _builtin_dir().iterdir()
-        if f.is_file() and f.name.endswith(".yaml")
-    )
+def _object_files(sources: Sequence[Mapping[str, Any]]) -> dict[str, Traversable]:
+    """name -> file for every object the sources hold; the first source with a name wins."""
+    out: dict[str, Traversable] = {}
+    for source in sources:
+        root = _source_root(source)
+        group = root.joinpath(OBJECT_GROUP) if root is not None else None
+        if group is None or not group.is_dir():
+            continue
+        for f in sorted(group.iterdir(), key=lambda f: f.name):
+            if f.is_file() and f.name.endswith(".yaml"):
+                out.setdefault(f.name.removesuffix(".yaml"), f)
+    return out
 
 
-def load_builtin(name: str) -> ObjectDef:
-    """One shipped object by name; unknown names list the available ones."""
-    names = builtin_object_names()
-    if name not in names:
-        raise ValueError(f"object {name!r}: unknown; built-in objects are {names}")
-    res = _builtin_dir().joinpath(f"{name}.yaml")
-    with importlib.resources.as_file(res) as path:
-        return ObjectDef.load(path)
+def object_names(sources: Sequence[Mapping[str, Any]] = PACKAGE_SOURCES) -> list[str]:
+    """Names of the objects the sources hold, sorted (the built-in ones by default)."""
+    return sorted(_object_files(sources))
 
 
-def builtin_objects() -> list[ObjectDef]:
-    return [load_builtin(n) for n in builtin_object_names()]
+def yaml_error_line(e: yaml.YAMLError) -> str:
+    """`malformed YAML in FILE, line L, column C: problem (context at line, column)`: PyYAML's
+    multi-line message in one line, positions 1-based as editors count them."""
+    if not isinstance(e, yaml.MarkedYAMLError) or e.problem_mark is None:
+        text = [t.strip() for t in str(e).splitlines() if t.strip()]
+        return f"malformed YAML: {' '.join(text[:2]) or type(e).__name__}"
+    mark = e.problem_mark
+    out = f"malformed YAML in {mark.name}, line {mark.line + 1}, column {mark.column + 1}: "
+    out += e.problem or "syntax error"
+    ctx = e.context_mark
+    if e.context and ctx is not None:
+        where = f"line {ctx.line + 1}, column {ctx.column + 1}"
+        out += f" ({e.context} at {where})" if ctx.name == mark.name else f" ({e.context})"
+    return out
+
+
+def _read_mapping(name: str, file: Traversable) -> dict[str, Any]:
+    """The mapping in one object file, read as Hydra reads config files (OmegaConf's YAML,
+    interpolations resolved, a `defaults` list ignored)."""
+    try:
+        with file.open(encoding="utf-8") as f:
+            node = OmegaConf.load(f)
+    except yaml.YAMLError as e:
+        raise ValueError(f"object {name!r}: {yaml_error_line(e)}") from None
+    if OmegaConf.is_dict(node) and "defaults" in node:
+        node = OmegaConf.masked_copy(node, [k for k in node if k != "defaults"])
+    data = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(data, dict):
+        raise ValueError(f"object {name!r}: config must be a mapping")
+    return data
+
+
+def load_objects(
+    names: Sequence[str] | None = None, sources: Sequence[Mapping[str, Any]] = PACKAGE_SOURCES
+) -> dict[str, ObjectDef]:
+    """`ObjectDef` per name, in the order asked (every object of the sources, sorted, when
+    `names` is None). Raises ValueError, one line naming the object and the problem."""
+    files = _object_files(sources)
+    available = sorted(files)
+    if names is None:
+        if not available:
+            raise ValueError(f"no objects found in the config group {OBJECT_GROUP!r}")
+        names = available
+    missing = [n for n in names if n not in files]
+    if missing:
+        shown = ", ".join(available[:30]) + (" ..." if len(available) > 30 else "")
+        raise ValueError(f"unknown object {missing[0]!r} (available: {shown or 'none'})")
+    out = {}
+    for n in names:
+        data = _read_mapping(n, files[n])
+        try:
+            obj = ObjectDef.from_mapping(data, default_name=n)
+        except (TypeError, ValueError, KeyError) as e:
+            msg = str(e).splitlines()[0]
+            raise ValueError(msg if msg.startswith("object ") else f"object {n!r}: {msg}") from None
+        if obj.name != n:
+            # users select objects by file name: a different `name` inside would be ambiguous
+            raise ValueError(f"object {n!r}: its config says name {obj.name!r}")
+        out[n] = obj
+    return out

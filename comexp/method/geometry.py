@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comexp.scene import ObjectSpec, Polygon2
+from comexp.method.scene import ObjectSpec, Polygon2
 
 
 def as_array(poly: Sequence[Sequence[float]]) -> np.ndarray:

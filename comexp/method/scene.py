@@ -175,6 +175,11 @@ class DepthImage:
     camera: CameraModel
 
 
+def wrap_angle(a: float) -> float:
+    """An angle (rad) wrapped to (-pi, pi]: the one wrap of yaws and yaw differences."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
 @dataclass(frozen=True)
 class Pose2D:
     """Planar pose of the object frame in the world: position (m) and CCW yaw (rad)."""

@@ -30,8 +30,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from comexp.config import ConfigError, PreparedJob, prepare_job, yaml_error_line
-from comexp.grid import expand_grid
+from comexp.experiment.config import ConfigError, PreparedJob, prepare_job
+from comexp.experiment.grid import expand_grid
+from comexp.experiment.objects import yaml_error_line
 
 log = logging.getLogger("comexp")
 
@@ -144,7 +145,7 @@ def _git_rev() -> str | None:
 
 def open_db(url: str) -> Any:
     """Open (creating) the results database, or fail with a one-line `ConfigError`."""
-    from comexp.db import ResultsDB, redact_url
+    from comexp.results.store import ResultsDB, redact_url
 
     try:
         db = ResultsDB(url)
@@ -161,7 +162,7 @@ def open_db(url: str) -> Any:
 
 def _scrub(text: str, url: str) -> str:
     """`text` with the database URL's password replaced (the URL itself by its redacted form)."""
-    from comexp.db import redact_url, url_password
+    from comexp.results.store import redact_url, url_password
 
     password = url_password(url)
     if not password:
@@ -175,7 +176,7 @@ def _scrub(text: str, url: str) -> str:
 def _scrub_hydra_files(url: str) -> None:
     """Hydra saved the job's config (and a multirun's) before the job started: take the
     database password out of those files; the URL stays, with *** for the password."""
-    from comexp.db import url_password
+    from comexp.results.store import url_password
 
     if not url_password(url):
         return
@@ -194,8 +195,11 @@ def _scrub_hydra_files(url: str) -> None:
 
 def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Validate, expand the grid, run what is not stored yet, write the job's reports."""
-    from comexp.db import episode_key, redact_url
-    from comexp.workers.pool import EpisodePool, Progress, ensure_ray, run_and_store
+    from comexp.results.identity import episode_key
+    from comexp.results.store import redact_url
+    from comexp.workers.driver import Progress, run_and_store
+    from comexp.workers.pool import EpisodePool
+    from comexp.workers.session import ensure_ray
 
     job: PreparedJob = prepare_job(cfg)
     exp = job.cfg
@@ -232,8 +236,6 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
             pool = EpisodePool(
                 exp.backend.name,
                 exp.workers,
-                runner=exp.execution.runner,
-                simulator_factory=exp.execution.simulator_factory,
                 batch_size=exp.execution.batch_size,
                 max_retries=exp.execution.max_retries,
                 replace_timeout_s=exp.execution.restart_timeout_s,
@@ -256,7 +258,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
             summary.update(ran=stats.done, failed=stats.failed, stored=stats.stored)
         else:
             print(f"{label}: all {len(specs)} episodes already stored")
-        from comexp.reports import write_job_reports
+        from comexp.results.reports import write_job_reports
 
         out_dir = HydraConfig.get().runtime.output_dir
         paths, text = write_job_reports(db, out_dir, keys, job=label)
@@ -388,7 +390,7 @@ def _die(message: str, code: int) -> None:
 def _scrub_log_records(argv: list[str]) -> None:
     """A `db=URL` override with a password: every log record (Hydra's launcher lists each
     job's overrides, our own lines name the database) shows the URL with *** instead."""
-    from comexp.db import url_password
+    from comexp.results.store import url_password
 
     urls = [a.partition("=")[2] for a in argv if a.lstrip("+~").startswith("db=")]
     urls = [u for url in urls for u in url.split(",") if url_password(u)]  # multirun lists

@@ -4,7 +4,7 @@
     df = comexp.load_results("results/comexp.db")            # one row per episode
     result = comexp.replay("results/comexp.db", episode_id=12)  # run it again, in-process
 
-`load_results` adds a `condition` column (the label of `comexp.reports.group_episodes`'s
+`load_results` adds a `condition` column (the label of `comexp.results.reports.group_episodes`'s
 grouping rule), so a notebook groups exactly as the tables and plots do.
 """
 
@@ -16,12 +16,13 @@ import os
 import typing
 from typing import TYPE_CHECKING, Any
 
-from comexp.db import EPISODES, PUSHES, SWEEPS, ResultsDB
+from comexp.results.schema import EPISODES, PUSHES, SWEEPS
+from comexp.results.store import ResultsDB
 
 if TYPE_CHECKING:
     import pandas as pd
 
-    from comexp.episode import EpisodeResult, EpisodeSpec
+    from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 
 TABLES = {"episodes": EPISODES, "pushes": PUSHES, "sweeps": SWEEPS}
 DbLike = ResultsDB | str | os.PathLike[str]
@@ -51,7 +52,7 @@ def load_results(db: DbLike, table: str = "episodes") -> pd.DataFrame:
             handle.close()
     df = pd.DataFrame(rows, columns=[c.name for c in t.c])
     if table == "episodes":
-        from comexp.reports import condition_of
+        from comexp.results.reports import condition_of
 
         conds = [condition_of(r) for r in rows]
         df["condition"] = pd.Series([c.label() for c in conds], index=df.index, dtype=object)
@@ -81,7 +82,7 @@ def _from_json(tp: Any, value: Any) -> Any:
 
 def spec_from_json(text: str) -> EpisodeSpec:
     """The stored `spec` column back as the `EpisodeSpec` that ran (estimator included)."""
-    from comexp.episode import EpisodeSpec
+    from comexp.experiment.episode import EpisodeSpec
 
     return _from_json(EpisodeSpec, json.loads(text))
 
@@ -99,8 +100,8 @@ def stored_spec(db: DbLike, episode_id: int) -> tuple[EpisodeSpec, dict[str, Any
 def replay(db: DbLike, episode_id: int) -> EpisodeResult:
     """Run a stored episode again, in this process, on the backend named in its row. On the
     machine (and package versions) that stored it the result equals the stored one."""
-    from comexp.episode import run_episode
-    from comexp.simulator import make_simulator
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.simulator import make_simulator
 
     spec, row = stored_spec(db, episode_id)
     if spec.backend != row["backend"]:

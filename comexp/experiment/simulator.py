@@ -1,6 +1,6 @@
 """The one simulator interface that perception, the estimator and the workers use.
 
-A backend builds a scene from engine-independent dataclasses (`comexp.scene`), renders the
+A backend builds a scene from engine-independent dataclasses (`comexp.method.scene`), renders the
 top-down depth image, executes straight pushes and lets the object come to rest. The true
 object state is for evaluation, tests and failure detection only; the estimator never reads it
 unless `rotation_source=oracle` is asked for.
@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from comexp.scene import (
+from comexp.method.scene import (
     CameraModel,
     DepthImage,
     ObjectState,
@@ -26,6 +26,7 @@ from comexp.scene import (
     PusherSpec,
     SceneSpec,
     SimSettings,
+    wrap_angle,
 )
 
 BACKENDS: dict[str, str] = {
@@ -82,18 +83,14 @@ class Frame:
 
     The pusher may be in it: the engines render their pusher, touching the object's side.
     Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
-    tracker can mask it (`comexp.perception.mask_pusher`). On the engines `image` is only the
-    window around the object (`object_window_px`); its camera model says where it lies.
+    tracker can mask it (`comexp.method.perception.mask_pusher`). On the engines `image` is only
+    the window around the object (`object_window_px`); its camera model says where it lies.
     """
 
     image: DepthImage
     t_s: float  # since the start of the push
     pusher_xy_m: tuple[float, float]
     pusher_radius_m: float
-
-
-def wrap_angle(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 def classify_state(

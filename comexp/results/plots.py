@@ -1,8 +1,8 @@
 """Figures in the spirit of the paper's Figs. 3-5, drawn from the results database, plus the
 Izz figure, a backend comparison and one episode drawn in its object's frame.
 
-Every figure groups episodes with `comexp.reports.group_episodes` (the one grouping rule) and
-pools only the columns its caption names:
+Every figure groups episodes with `comexp.results.reports.group_episodes` (the one grouping
+rule) and pools only the columns its caption names:
 
 - `error_per_object_<condition>.png` (Figs. 3, 4): per object and all objects, one box per
   speed side by side; frictions and Izz pooled (as the paper's tables); the paper's
@@ -37,8 +37,8 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from comexp.db import EpisodeFilter, ResultsDB  # noqa: E402
-from comexp.reports import (  # noqa: E402
+from comexp.results.filters import EpisodeFilter  # noqa: E402
+from comexp.results.reports import (  # noqa: E402
     ALL_OBJECTS,
     EPISODE_COLUMNS,
     FRICTION_COLUMNS,
@@ -52,6 +52,7 @@ from comexp.reports import (  # noqa: E402
     pooled_values,
     tables_from_rows,
 )
+from comexp.results.store import ResultsDB  # noqa: E402
 
 _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
@@ -173,9 +174,7 @@ def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
                 if e is not None:
                     cells[(r["object"], cond.speed_cm_s)].append(e)
                     cells[(ALL_OBJECTS, cond.speed_cm_s)].append(e)
-            (table,) = tables_from_rows(group, PAPER_POOL)
-            mark = paper_mean_cm(table)
-            if mark is not None:
+            if (mark := _paper_mark(group)) is not None:
                 marks[(ALL_OBJECTS, cond.speed_cm_s)] = mark
         objects = sorted({r["object"] for g in groups.values() for r in g}, key=natural_key)
         speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
@@ -197,6 +196,13 @@ def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
             )
         )
     return paths
+
+
+def _paper_mark(group: Rows) -> float | None:
+    """The paper's all-objects mean for a group pooled as its tables are, where the group is
+    the paper's condition (`reports.paper_mean_cm`)."""
+    (table,) = tables_from_rows(group, PAPER_POOL)
+    return paper_mean_cm(table)
 
 
 def _friction_text(key: tuple[Any, ...]) -> str:
@@ -221,67 +227,70 @@ def _by_axis(
     return out
 
 
-def plot_friction_influence(rows: Rows, out_dir: Path) -> list[Path]:
-    axes = ("floor", *FRICTION_COLUMNS, "speed_cm_s")
+def _influence(
+    rows: Rows,
+    out_dir: Path,
+    *,
+    pool: Sequence[str],
+    factor: Sequence[str],
+    what: str,
+    name: str,
+    xlabel: Callable[[tuple[Any, ...]], str],
+) -> list[Path]:
+    """One figure per panel: the error per value of `factor` (with the floor), one box per
+    speed, the `pool` columns pooled (and said so in the title)."""
+    axes = ("floor", *factor, "speed_cm_s")
     paths = []
     for panel, groups, cells in _by_axis(
         rows,
-        ("izz_scale",),
+        pool,
         axes,
-        lambda c: (c.floor, c.mu_floor_x, c.mu_floor_y, c.mu_pusher),
+        lambda c: (c.floor, *(c[f] for f in factor)),
         lambda c: c.speed_cm_s,
     ):
         xkeys = sorted({x for x, _ in cells}, key=_sort_any)
         speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
         title = (
-            f"{panel.label()}: influence of floor and pusher friction "
-            f"({_failed(groups)} failed excluded)\n"
-            f"pooled: {_pooled_caption(groups, ('izz_scale',))}"
+            f"{panel.label()}: influence of {what} ({_failed(groups)} failed excluded)\n"
+            f"pooled: {_pooled_caption(groups, pool)}"
         )
         paths.append(
             _box_figure(
                 cells=cells,
                 xkeys=xkeys,
-                xlabel=_friction_text,
+                xlabel=xlabel,
                 series=speeds,
                 series_label=speed_name,
                 title=title,
-                path=out_dir / f"friction_influence_{panel.slug()}.png",
-                xtitle="floor and pusher friction",
+                path=out_dir / f"{name}_{panel.slug()}.png",
+                xtitle=f"floor and {what}",
             )
         )
     return paths
+
+
+def plot_friction_influence(rows: Rows, out_dir: Path) -> list[Path]:
+    return _influence(
+        rows,
+        out_dir,
+        pool=("izz_scale",),
+        factor=FRICTION_COLUMNS,
+        what="floor and pusher friction",
+        name="friction_influence",
+        xlabel=_friction_text,
+    )
 
 
 def plot_izz_influence(rows: Rows, out_dir: Path) -> list[Path]:
-    axes = ("floor", "izz_scale", "speed_cm_s")
-    paths = []
-    for panel, groups, cells in _by_axis(
+    return _influence(
         rows,
-        FRICTION_COLUMNS,
-        axes,
-        lambda c: (c.floor, c.izz_scale),
-        lambda c: c.speed_cm_s,
-    ):
-        xkeys = sorted({x for x, _ in cells}, key=_sort_any)
-        speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
-        title = (
-            f"{panel.label()}: influence of Izz ({_failed(groups)} failed excluded)\n"
-            f"pooled: {_pooled_caption(groups, FRICTION_COLUMNS)}"
-        )
-        paths.append(
-            _box_figure(
-                cells=cells,
-                xkeys=xkeys,
-                xlabel=lambda k: f"{k[0]}\nIzz x{fmt_num(k[1])}",
-                series=speeds,
-                series_label=speed_name,
-                title=title,
-                path=out_dir / f"izz_influence_{panel.slug()}.png",
-                xtitle="floor and Izz scale",
-            )
-        )
-    return paths
+        out_dir,
+        pool=FRICTION_COLUMNS,
+        factor=("izz_scale",),
+        what="Izz",
+        name="izz_influence",
+        xlabel=lambda k: f"{k[0]}\nIzz x{fmt_num(k[1])}",
+    )
 
 
 def plot_backends(rows: Rows, out_dir: Path) -> list[Path]:
@@ -304,9 +313,7 @@ def plot_backends(rows: Rows, out_dir: Path) -> list[Path]:
             continue
         marks = {}
         for cond, group in groups.items():
-            (table,) = tables_from_rows(group, PAPER_POOL)
-            mark = paper_mean_cm(table)
-            if mark is not None:
+            if (mark := _paper_mark(group)) is not None:
                 marks[((cond.floor, cond.speed_cm_s), cond.backend)] = mark
         title = (
             f"{panel.label() or 'all'}: backends on the same condition "
@@ -353,10 +360,10 @@ def reconstruct_regions(
     one the episode's first image gave, so sizes can differ from `region_px` by a few pixels."""
     import shapely
 
-    from comexp.estimator import EstimatorSettings, update_region
-    from comexp.perception import hull_region
-    from comexp.results import _from_json
-    from comexp.scene import CameraSpec
+    from comexp.method.estimator import EstimatorSettings, update_region
+    from comexp.method.perception import hull_region
+    from comexp.method.scene import CameraSpec
+    from comexp.results.api import _from_json
 
     cam = CameraSpec()
     pixel_m = cam.model().pixel_size_m(cam.height_m - float(spec["height_cm"]) / 100.0)

@@ -14,33 +14,19 @@ Why the SQLite details matter:
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import json
-import math
-import numbers
 import os
 import random
 import sqlite3
+import tempfile
 import time
 import urllib.parse
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (
-    JSON,
-    DateTime,
     Engine,
-    Float,
-    ForeignKey,
-    Index,
     Integer,
-    String,
-    Text,
-    UniqueConstraint,
     create_engine,
     event,
     func,
@@ -51,243 +37,25 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-from comexp.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.episode import EpisodeResult
+from comexp.results.filters import EpisodeFilter
+from comexp.results.identity import episode_key
+from comexp.results.schema import (
+    EPISODES,
+    META,
+    PUSHES,
+    SCHEMA_VERSION,
+    SWEEPS,
+    Base,
+    episode_row,
+    push_row,
+    utcnow,
+)
 
-# 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics; 4: pushes.n_frames
-SCHEMA_VERSION = 4  # 4 also: episodes.camera_fps
-KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
-_FLOAT_TOL = 1e-9  # condition filters compare stored floats with this tolerance
 _SCHEMA_LOCK_ID = 0x636F6D6578  # "comex": PostgreSQL advisory lock taken while creating tables
-
-
-# --------------------------------------------------------------------------- episode key
-def _canonical(value: Any) -> Any:
-    """JSON-ready form whose text does not depend on int-vs-float spelling or container type.
-
-    40 and 40.0 (Hydra may give either) both become 40; other floats keep Python's shortest
-    round-trip repr, which is stable across platforms; tuples become lists.
-    """
-    if isinstance(value, bool) or value is None or isinstance(value, str):
-        return value
-    if isinstance(value, numbers.Integral):
-        return int(value)
-    if isinstance(value, numbers.Real):
-        x = float(value)
-        if math.isfinite(x) and x.is_integer() and abs(x) < 2**53:
-            return int(x)
-        return x
-    if isinstance(value, dict):
-        return {str(k): _canonical(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_canonical(v) for v in value]
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return _canonical(dataclasses.asdict(value))
-    if hasattr(value, "tolist"):  # numpy scalars and arrays
-        return _canonical(value.tolist())
-    raise TypeError(f"cannot build an episode key from a {type(value).__name__}: {value!r}")
-
-
-def canonical_json(value: Any) -> str:
-    """Sorted-key compact JSON of `_canonical(value)`."""
-    return json.dumps(_canonical(value), sort_keys=True, separators=(",", ":"), allow_nan=True)
-
-
-def episode_key(spec: EpisodeSpec) -> str:
-    """Identity of an episode: sha256 of every spec field, so fields added later count too."""
-    text = KEY_VERSION + ":" + canonical_json(spec)
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
-# --------------------------------------------------------------------------- schema
-class Base(DeclarativeBase):
-    pass
-
-
-def _utcnow() -> datetime:
-    return datetime.now(UTC)
-
-
-class Sweep(Base):
-    """One run of the driver (one Hydra job): what was asked and with which software."""
-
-    __tablename__ = "sweeps"
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_utcnow)
-    command_line: Mapped[str] = mapped_column(Text, default="")
-    config: Mapped[str] = mapped_column(Text, default="")  # full resolved YAML
-    job_name: Mapped[str] = mapped_column(String(200), default="")
-    versions: Mapped[dict] = mapped_column(JSON, default=dict)
-    git_rev: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    host: Mapped[str] = mapped_column(String(200), default="")
-
-
-class Episode(Base):
-    """One CoM estimation. Column names are the public contract (README, "Reading results")."""
-
-    __tablename__ = "episodes"
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    sweep_id: Mapped[int | None] = mapped_column(ForeignKey("sweeps.id"), nullable=True)
-    backend: Mapped[str] = mapped_column(String(32))
-    floor: Mapped[str] = mapped_column(String(32))
-    mu_floor_x: Mapped[float] = mapped_column(Float)
-    mu_floor_y: Mapped[float] = mapped_column(Float)
-    mu_pusher: Mapped[float] = mapped_column(Float)
-    speed_cm_s: Mapped[float] = mapped_column(Float)
-    izz_scale: Mapped[float] = mapped_column(Float)
-    object: Mapped[str] = mapped_column(String(100))
-    com_index: Mapped[int] = mapped_column(Integer)
-    true_com_x_cm: Mapped[float] = mapped_column(Float)
-    true_com_y_cm: Mapped[float] = mapped_column(Float)
-    est_com_x_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
-    est_com_y_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
-    error_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
-    n_pushes: Mapped[int] = mapped_column(Integer)
-    status: Mapped[str] = mapped_column(String(16))  # ok | failed
-    failure: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    wall_s: Mapped[float] = mapped_column(Float)
-    # Contract columns come first (in the README's order), so `SELECT *` reads like the contract.
-    episode_key: Mapped[str] = mapped_column(String(64), nullable=False)
-    sim_time_s: Mapped[float] = mapped_column(Float, default=0.0)
-    seed: Mapped[int] = mapped_column(Integer, default=0)
-    mass_kg: Mapped[float] = mapped_column(Float)
-    height_cm: Mapped[float] = mapped_column(Float)
-    push_length_cm: Mapped[float] = mapped_column(Float)
-    recenter_beyond_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
-    # what determined the physics (comexp.simulator.physics_identity); part of the episode key
-    physics: Mapped[str] = mapped_column(String(200), default="")
-    camera_fps: Mapped[float] = mapped_column(Float, default=0.0)  # tracking frames per second
-    w1: Mapped[float | None] = mapped_column(Float, nullable=True)
-    w2: Mapped[float | None] = mapped_column(Float, nullable=True)
-    theta_T_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
-    C_bw_px: Mapped[float | None] = mapped_column(Float, nullable=True)
-    n_push: Mapped[int | None] = mapped_column(Integer, nullable=True)
-    rotation_source: Mapped[str | None] = mapped_column(String(32), nullable=True)
-    # The whole estimator settings and spec, canonical JSON: fields added later are kept, and
-    # `estimator` doubles as the grouping key for "same estimator variant" in the reports.
-    estimator: Mapped[str] = mapped_column(Text)
-    spec: Mapped[str] = mapped_column(Text)
-    detail: Mapped[str] = mapped_column(Text, default="")
-    worker: Mapped[str] = mapped_column(String(128), default="")  # node_ip:pid that ran it
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_utcnow)
-
-    __table_args__ = (
-        UniqueConstraint("episode_key", name="uq_episodes_episode_key"),
-        Index(
-            "ix_episodes_condition",
-            "backend",
-            "floor",
-            "speed_cm_s",
-            "mu_floor_x",
-            "mu_floor_y",
-            "mu_pusher",
-        ),
-        Index("ix_episodes_object", "object", "com_index"),
-        Index("ix_episodes_status", "status", "failure"),
-        Index("ix_episodes_sweep", "sweep_id"),
-    )
-
-
-class Push(Base):
-    """One push of an episode; contact and direction in the object frame at push time."""
-
-    __tablename__ = "pushes"
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    episode_id: Mapped[int] = mapped_column(ForeignKey("episodes.id", ondelete="CASCADE"))
-    k: Mapped[int] = mapped_column(Integer)
-    contact_x_cm: Mapped[float] = mapped_column(Float)
-    contact_y_cm: Mapped[float] = mapped_column(Float)
-    dir_x: Mapped[float] = mapped_column(Float)
-    dir_y: Mapped[float] = mapped_column(Float)
-    rotation_deg: Mapped[float] = mapped_column(Float)
-    rotation_true_deg: Mapped[float] = mapped_column(Float)
-    decision: Mapped[str] = mapped_column(String(16))  # ccw | cw | band
-    region_px: Mapped[int] = mapped_column(Integer)
-    # tracking frames the measured rotation went through (0: the images before and after)
-    n_frames: Mapped[int] = mapped_column(Integer, default=0)
-
-    __table_args__ = (UniqueConstraint("episode_id", "k", name="uq_pushes_episode_k"),)
-
-
-class Meta(Base):
-    """Schema version, so that a later layout can migrate or refuse old files clearly."""
-
-    __tablename__ = "comexp_meta"
-    key: Mapped[str] = mapped_column(String(64), primary_key=True)
-    value: Mapped[str] = mapped_column(Text)
-
-
-EPISODES = Episode.__table__
-PUSHES = Push.__table__
-SWEEPS = Sweep.__table__
-META = Meta.__table__
-
-
-# --------------------------------------------------------------------------- filters
-@dataclass(frozen=True)
-class EpisodeFilter:
-    """Selection of episodes; None means "any". Floats match within 1e-9.
-
-    `mu_floor` selects isotropic floors with mu_x = mu_y = mu_floor; anisotropic floors are
-    selected by orientation with `mu_floor_x` / `mu_floor_y`.
-    """
-
-    backend: str | None = None
-    floor: str | None = None
-    speed_cm_s: float | None = None
-    mu_floor: float | None = None
-    mu_floor_x: float | None = None
-    mu_floor_y: float | None = None
-    mu_pusher: float | None = None
-    izz_scale: float | None = None
-    object: str | None = None
-    com_index: int | None = None
-    status: str | None = None
-    failure: str | None = None
-    sweep_id: int | None = None
-    rotation_source: str | None = None
-
-    def __post_init__(self) -> None:
-        if self.status not in (None, "ok", "failed"):
-            raise ValueError(f"status must be ok or failed, not {self.status!r}")
-        for name in ("speed_cm_s", "mu_floor", "mu_floor_x", "mu_floor_y", "mu_pusher"):
-            v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, not {v!r}")
-        if self.mu_floor is not None and (
-            self.mu_floor_x is not None or self.mu_floor_y is not None
-        ):
-            raise ValueError("give either mu_floor (isotropic) or mu_floor_x/mu_floor_y, not both")
-
-    def describe(self) -> str:
-        parts = [f"{f.name}={getattr(self, f.name)}" for f in dataclasses.fields(self)]
-        return " ".join(p for p in parts if not p.endswith("=None")) or "(no filter)"
-
-    def clauses(self) -> list[Any]:
-        c = EPISODES.c
-        out: list[Any] = []
-
-        def near(col: Any, v: float) -> Any:
-            return col.between(v - _FLOAT_TOL, v + _FLOAT_TOL)
-
-        for name in ("backend", "floor", "object", "status", "failure", "rotation_source"):
-            v = getattr(self, name)
-            if v is not None:
-                out.append(c[name] == v)
-        for name in ("com_index", "sweep_id"):
-            v = getattr(self, name)
-            if v is not None:
-                out.append(c[name] == int(v))
-        for name in ("speed_cm_s", "mu_floor_x", "mu_floor_y", "mu_pusher", "izz_scale"):
-            v = getattr(self, name)
-            if v is not None:
-                out.append(near(c[name], float(v)))
-        if self.mu_floor is not None:
-            out += [near(c.mu_floor_x, self.mu_floor), near(c.mu_floor_y, self.mu_floor)]
-        return out
 
 
 # --------------------------------------------------------------------------- database
@@ -340,14 +108,55 @@ def _create_engine(url: str | URL, **kwargs: Any) -> Engine:
         raise ValueError(f"no database driver for {backend} ({exc.name}): {hint}") from None
 
 
-def _sqlite_file(url: str | URL) -> Path | None:
-    u = make_url(url)
+def sqlite_file(target: str | os.PathLike[str]) -> Path | None:
+    """The file behind a database location when it is SQLite: a plain path, or a sqlite://
+    URL naming a file; None for another database or SQLite in memory. The one parser of a
+    location, for opening it and for checking it before a run."""
+    text = os.fspath(target)
+    if not _is_url(text):
+        return Path(text).expanduser()
+    u = make_url(text)
     if u.get_backend_name() != "sqlite":
         return None
     db = u.database or ""
     if db in ("", ":memory:") or db.startswith("file:"):
         return None
-    return Path(db)
+    return Path(db)  # as SQLite opens it: no ~ expansion in a URL
+
+
+def check_location(target: str | os.PathLike[str]) -> None:
+    """Fail early, leaving nothing behind, when an SQLite file could not be created or written
+    (ValueError, one line); other databases are checked when connecting.
+
+    Probes for real (permission bits lie for root and on read-only mounts): an existing file
+    is opened for update, otherwise a temporary file is created in the nearest existing parent.
+    """
+    path = sqlite_file(target)
+    if path is None:
+        return
+    if path.is_dir():
+        raise ValueError(f"{str(path)!r} is a directory, not a database file")
+    if path.exists():
+        try:
+            with open(path, "r+b") as f:
+                head = f.read(16)
+        except OSError as e:
+            raise ValueError(f"cannot write to {str(path)!r}: {e.strerror}") from None
+        if head and head != b"SQLite format 3\x00":
+            raise ValueError(f"{str(path)!r} exists and is not an SQLite database")
+        return
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"cannot create {str(path)!r}: {str(parent)!r} is not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise ValueError(
+            f"cannot create {str(path)!r}: {str(parent)!r} is not writable ({e.strerror})"
+        ) from None
 
 
 class ResultsDB:
@@ -357,12 +166,10 @@ class ResultsDB:
         target = os.fspath(url_or_path)
         self.readonly = readonly
         self.url: str | URL
+        self.path = sqlite_file(target)
         if _is_url(target):
             self.url = target
-            self.path = _sqlite_file(target)
-        else:
-            self.path = Path(target).expanduser()
-            # Built, not parsed: a file name may contain '?', '#' or '%'.
+        else:  # built, not parsed: a file name may contain '?', '#' or '%'
             self.url = URL.create("sqlite+pysqlite", database=str(self.path))
         self.where = (
             str(self.path)
@@ -486,7 +293,7 @@ class ResultsDB:
             row = conn.execute(
                 insert(SWEEPS)
                 .values(
-                    started_at=_utcnow(),
+                    started_at=utcnow(),
                     command_line=command_line,
                     config=config_yaml,
                     job_name=job_name,
@@ -517,8 +324,8 @@ class ResultsDB:
         for r in results:
             key = episode_key(r.spec)
             if key not in rows:
-                rows[key] = _episode_row(sweep_id, key, r)
-                pushes[key] = [_push_row(p) for p in r.pushes]
+                rows[key] = episode_row(sweep_id, key, r)
+                pushes[key] = [push_row(p) for p in r.pushes]
         if not rows:
             return 0
         with self.engine.begin() as conn:
@@ -717,70 +524,3 @@ def _reason(exc: BaseException) -> str:
     orig = getattr(exc, "orig", None)
     text = str(orig if orig is not None else exc)
     return text.strip().splitlines()[0] if text.strip() else type(exc).__name__
-
-
-def _episode_row(sweep_id: int | None, key: str, r: EpisodeResult) -> dict[str, Any]:
-    s = r.spec
-    est = s.estimator
-    w = tuple(getattr(est, "w", ()) or ())
-    est_com = r.est_com_cm
-    return {
-        "sweep_id": sweep_id,
-        "episode_key": key,
-        "backend": s.backend,
-        "floor": s.floor,
-        "mu_floor_x": float(s.mu_floor_x),
-        "mu_floor_y": float(s.mu_floor_y),
-        "mu_pusher": float(s.mu_pusher),
-        "speed_cm_s": float(s.speed_cm_s),
-        "izz_scale": float(s.izz_scale),
-        "object": s.object,
-        "com_index": int(s.com_index),
-        "true_com_x_cm": float(s.com_cm[0]),
-        "true_com_y_cm": float(s.com_cm[1]),
-        "est_com_x_cm": None if est_com is None else float(est_com[0]),
-        "est_com_y_cm": None if est_com is None else float(est_com[1]),
-        "error_cm": None if r.error_cm is None else float(r.error_cm),
-        "n_pushes": int(r.n_pushes),
-        "status": r.status,
-        "failure": r.failure,
-        "wall_s": float(r.wall_s),
-        "sim_time_s": float(r.sim_time_s),
-        "seed": int(s.seed),
-        "mass_kg": float(s.mass_kg),
-        "height_cm": float(s.height_cm),
-        "push_length_cm": float(s.push_length_cm),
-        "recenter_beyond_cm": _opt_float(getattr(s, "recenter_beyond_cm", None)),
-        "physics": getattr(s, "physics", "") or "",
-        "camera_fps": float(getattr(s, "camera_fps", 0.0)),
-        "w1": float(w[0]) if len(w) > 0 else None,
-        "w2": float(w[1]) if len(w) > 1 else None,
-        "theta_T_deg": _opt_float(getattr(est, "theta_T_deg", None)),
-        "C_bw_px": _opt_float(getattr(est, "C_bw_px", None)),
-        "n_push": None if getattr(est, "n_push", None) is None else int(est.n_push),
-        "rotation_source": getattr(est, "rotation_source", None),
-        "estimator": canonical_json(est),
-        "spec": canonical_json(s),
-        "detail": r.detail or "",
-        "worker": getattr(r, "worker", "") or "",
-        "created_at": _utcnow(),
-    }
-
-
-def _push_row(p: Any) -> dict[str, Any]:
-    return {
-        "k": int(p.k),
-        "contact_x_cm": float(p.contact_x_cm),
-        "contact_y_cm": float(p.contact_y_cm),
-        "dir_x": float(p.dir_x),
-        "dir_y": float(p.dir_y),
-        "rotation_deg": float(p.rotation_deg),
-        "rotation_true_deg": float(p.rotation_true_deg),
-        "decision": p.decision,
-        "region_px": int(p.region_px),
-        "n_frames": int(getattr(p, "n_frames", 0)),
-    }
-
-
-def _opt_float(v: Any) -> float | None:
-    return None if v is None else float(v)

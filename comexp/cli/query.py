@@ -20,9 +20,12 @@ from typing import Any, NoReturn
 
 from sqlalchemy.exc import SQLAlchemyError
 
-from comexp.db import EPISODES, EpisodeFilter, ResultsDB
-from comexp.reports import (
+from comexp.results.filters import EpisodeFilter
+from comexp.results.reports import (
+    CORE_COLUMNS,
     condition_tables,
+    fmt_value,
+    markdown_table,
     paper_markdown,
     paper_tables,
     summary_csv,
@@ -30,18 +33,14 @@ from comexp.reports import (
     table_markdown,
     tables_csv,
 )
+from comexp.results.schema import EPISODES
+from comexp.results.store import ResultsDB
 
 DEFAULT_DB = os.path.join("results", "comexp.db")
 EPISODE_DEFAULT_COLUMNS = (
     "id",
     "sweep_id",
-    "backend",
-    "floor",
-    "mu_floor_x",
-    "mu_floor_y",
-    "mu_pusher",
-    "speed_cm_s",
-    "izz_scale",
+    *CORE_COLUMNS,  # backend, floor, frictions, speed, Izz
     "object",
     "com_index",
     "error_cm",
@@ -81,24 +80,22 @@ def _pos_float(text: str) -> float:
     return v
 
 
-def _pos_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
+def _int_at_least(minimum: int):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if v < minimum:
+            op = "> 0" if minimum == 1 else f">= {minimum}"
+            raise argparse.ArgumentTypeError(f"must be {op}: {text!r}")
+        return v
+
+    return parse
 
 
-def _nonneg_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0: {text!r}")
-    return v
+_pos_int = _int_at_least(1)
+_nonneg_int = _int_at_least(0)
 
 
 def _add_condition_filters(p: argparse.ArgumentParser) -> None:
@@ -210,16 +207,10 @@ def _no_match_note(db: ResultsDB, flt: EpisodeFilter) -> str | None:
     for name, column in _HINT_COLUMNS.items():
         v = getattr(flt, name)
         if v is not None and db.count(EpisodeFilter(**{name: v})) == 0:
-            stored = ", ".join(_fmt(x) for x in db.distinct(column) if x is not None)
-            hints.append(f"{name}={_fmt(v)} matches nothing (stored: {stored})")
+            stored = ", ".join(fmt_value(x) for x in db.distinct(column) if x is not None)
+            hints.append(f"{name}={fmt_value(v)} matches nothing (stored: {stored})")
     detail = "; ".join(hints) if hints else "the filters match nothing together"
     return f"no episodes match {flt.describe()}: {detail}"
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:g}"
-    return "" if v is None else str(v)
 
 
 def _rows_out(rows: Sequence[dict[str, Any]], columns: Sequence[str], fmt: str) -> str:
@@ -230,11 +221,7 @@ def _rows_out(rows: Sequence[dict[str, Any]], columns: Sequence[str], fmt: str) 
         for r in rows:
             w.writerow(["" if r[c] is None else r[c] for c in columns])
         return buf.getvalue()
-    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
-    for r in rows:
-        cells = [_fmt(r[c]).replace("|", "\\|").replace("\n", " ") for c in columns]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return markdown_table(columns, [[fmt_value(r[c]) for c in columns] for r in rows]) + "\n"
 
 
 def _episode_columns(spec: str | None) -> list[str]:
@@ -287,7 +274,7 @@ def _run(args: argparse.Namespace, out: Any) -> None:
             rows = db.episodes(flt, columns=cols, limit=args.limit)
             out.write(_rows_out(rows, cols, args.format))
         elif args.command == "plot":
-            from comexp.plots import make_plots
+            from comexp.results.plots import make_plots
 
             for path in make_plots(db, args.out, flt):
                 out.write(f"{path}\n")
@@ -308,7 +295,7 @@ def _check_image_path(path: str) -> None:
 
 
 def _show(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
-    from comexp.plots import plot_episode
+    from comexp.results.plots import plot_episode
 
     row = db.episode(args.episode_id)
     plot_episode(row, db.pushes(args.episode_id), args.out)
@@ -327,7 +314,7 @@ def _sweeps(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
         raise CliError(f"no sweep with id {args.show} (stored: {len(sweeps)} sweeps)")
     s = match[0]
     for key in ("id", "started_at", "job_name", "host", "git_rev", "command_line"):
-        out.write(f"{key}: {_fmt(s.get(key))}\n")
+        out.write(f"{key}: {fmt_value(s.get(key))}\n")
     out.write(f"episodes: {s['n_episodes']} ({s['n_ok']} ok)\n")
     out.write("versions:\n")
     for k, v in sorted((s.get("versions") or {}).items()):

@@ -20,8 +20,10 @@ import cv2
 import numpy as np
 import shapely
 
-from comexp.geometry import centroid as polygon_centroid
-from comexp.scene import CameraModel, DepthImage, Pose2D
+from comexp.method.geometry import centroid as polygon_centroid
+from comexp.method.geometry import signed_area
+from comexp.method.scene import CameraModel, DepthImage, Pose2D
+from comexp.method.scene import wrap_angle as _wrap  # the tracker's name for it
 
 MIN_HEIGHT_M = 0.004  # anything this far above the floor plane is object
 NORMAL_HALF_WINDOW_PX = 4  # contour pixels on each side used to fit a local tangent line
@@ -58,7 +60,6 @@ class Observation:
     contour_m: np.ndarray  # (m, 2) CCW
     normals: np.ndarray  # (m, 2) inward unit normals
     straight: np.ndarray  # (m,) bool
-    fit_rms_px: np.ndarray  # (m,) local line-fit residual, pixels
     pixel_m: float  # size of one pixel at the object's top face
 
     @property
@@ -67,14 +68,9 @@ class Observation:
         hull = cv2.convexHull(self.points_m.astype(np.float32), clockwise=False)[:, 0, :]
         hull = hull.astype(float)
         # OpenCV's orientation flag refers to its own axes; enforce CCW in the y-up frame.
-        if _signed_area(hull) < 0:
+        if signed_area(hull) < 0:
             hull = hull[::-1]
         return hull
-
-
-def _signed_area(p: np.ndarray) -> float:
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
 def floor_depth_m(camera: CameraModel) -> float:
@@ -159,7 +155,7 @@ def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
     c = max(contours, key=len)[:, 0, :]  # (m, 2) as (u, v)
     cu, cv_ = c[:, 0], c[:, 1]
     contour = cam.pixel_to_world(cu, cv_, img.depth_m[cv_, cu])[:, :2]
-    if _signed_area(contour) < 0:
+    if signed_area(contour) < 0:
         contour = contour[::-1].copy()
     half = NORMAL_HALF_WINDOW_PX if len(contour) > 4 * NORMAL_HALF_WINDOW_PX else 1
     fit = _local_fit(contour, half)
@@ -177,7 +173,6 @@ def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
         contour_m=fit["smooth"],
         normals=normals,
         straight=straight,
-        fit_rms_px=line_px,
         pixel_m=pixel_m,
     )
 
@@ -372,8 +367,7 @@ class PoseTracker:
 
     Registering against the first image, not the previous one, keeps errors from accumulating.
     Rotational symmetries of the outline are invisible to any vision method: among equally
-    good fits the one closest to the previous pose is returned (smallest rotation per push),
-    and `symmetric_fold` reports the detected symmetry so callers can say so.
+    good fits the one closest to the previous pose is returned (smallest rotation per push).
     """
 
     def __init__(self, first: Perception, first_obs: Observation) -> None:
@@ -512,18 +506,6 @@ class PoseTracker:
         self.last = f.pose
         return f
 
-    def symmetric_fold(self, tol_px: float = 0.3) -> int:
-        """Largest n such that the outline rotated by 360/n deg registers onto itself (ICP from
-        that rotation stays there with a pixel-level residual): 1 = no symmetry, 2 = e.g. a
-        rectangle, 8 = 8 or more (a disc), whose rotation no vision method can see."""
-        for n in (8, 6, 5, 4, 3, 2):
-            a = 2.0 * math.pi / n
-            f = self._icp(self.ref, a, np.zeros(2))
-            # a symmetric outline fits as well there as at 0 and stays there
-            if f.rms_px < tol_px and abs(_wrap(f.pose.yaw_rad - a)) < 0.25 * a:
-                return n
-        return 1
-
 
 def _median(d: np.ndarray) -> float:
     """np.median of a 1-d float array without NaNs, by partial sort (~5x less overhead)."""
@@ -533,15 +515,6 @@ def _median(d: np.ndarray) -> float:
         return float(np.partition(d, k)[k])
     p = np.partition(d, (k - 1, k))
     return float(0.5 * (p[k - 1] + p[k]))
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
-
-
-def relative_rotation_deg(before: Pose2D, after: Pose2D) -> float:
-    """CCW rotation between two poses, degrees in (-180, 180]."""
-    return math.degrees(_wrap(after.yaw_rad - before.yaw_rad))
 
 
 def render_prism_depth(

@@ -12,8 +12,8 @@ import hashlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
-from comexp.config import ExperimentConfig, estimator_settings
-from comexp.episode import EpisodeSpec, EstimatorSettings
+from comexp.experiment.config import ExperimentConfig, estimator_settings
+from comexp.experiment.episode import EpisodeSpec, EstimatorSettings
 
 
 class ObjectLike(Protocol):
@@ -50,10 +50,10 @@ def expand_grid(
     """All episodes of one job. `objects` maps names to object definitions (in grid order when
     `cfg.grid.objects` is None); `com_fn(obj, n, base_seed=, margin_cm=)` gives the CoMs."""
     if com_fn is None:
-        from comexp.objects import com_points
+        from comexp.experiment.objects import com_points
 
         com_fn = com_points
-    from comexp.simulator import physics_identity
+    from comexp.experiment.simulator import physics_identity
 
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
     physics = physics_identity(cfg.backend.name, options=cfg.backend.options())

@@ -32,13 +32,14 @@ from typing import Any
 
 import numpy as np
 
-from comexp import paper
-from comexp.db import EpisodeFilter, ResultsDB, canonical_json
-from comexp.estimator import EstimatorSettings
+from comexp.method.estimator import EstimatorSettings
+from comexp.results import paper
+from comexp.results.filters import EpisodeFilter
+from comexp.results.identity import canonical_json
+from comexp.results.store import ResultsDB
 
-# Every column that can change a result. Adding one (e.g. a physics version) here makes every
-# table, report, plot and the bench tell its values apart.
-CONDITION_COLUMNS: tuple[str, ...] = (
+# Core columns: always in a label (unless pooled), in this order.
+CORE_COLUMNS = (
     "backend",
     "floor",
     "mu_floor_x",
@@ -46,6 +47,11 @@ CONDITION_COLUMNS: tuple[str, ...] = (
     "mu_pusher",
     "speed_cm_s",
     "izz_scale",
+)
+# Every column that can change a result. Adding one (e.g. a physics version) here makes every
+# table, report, plot and the bench tell its values apart.
+CONDITION_COLUMNS: tuple[str, ...] = (
+    *CORE_COLUMNS,
     "mass_kg",
     "push_length_cm",
     "recenter_beyond_cm",
@@ -64,8 +70,6 @@ PROTOCOL_DEFAULTS: dict[str, Any] = {
     "camera_fps": 30.0,
 }
 _DEFAULT_ESTIMATOR: dict[str, Any] = json.loads(canonical_json(EstimatorSettings()))
-# Core columns: always in a label (unless pooled), in this order.
-_CORE = ("backend", "floor", "mu_floor_x", "mu_floor_y", "mu_pusher", "speed_cm_s", "izz_scale")
 STAT_COLUMNS = ("n", "mean", "std", "max", "min")
 ALL_OBJECTS = "all"
 EPISODE_COLUMNS = (*CONDITION_COLUMNS, "object", "status", "failure", "error_cm")
@@ -178,7 +182,7 @@ class Condition:
             out.append(f"rotation {source}")
             out += [f"{k}={_short(v)}" for k, v in changes.items()]
         for c in CONDITION_COLUMNS:
-            if c in _CORE or c == "estimator":
+            if c in CORE_COLUMNS or c == "estimator":
                 continue
             v = self[c]
             if v is POOLED:
@@ -439,7 +443,7 @@ def paper_markdown(tables: dict[Condition, dict[float, ConditionTable]], *, digi
         pooled = by_speed[speeds[0]].pooled_text()
         parts.append(
             f"### {cond.label()}\n\nerror_cm over ok episodes; speeds in cm/s; {pooled}\n\n"
-            f"{_md_table(header, body)}\n\n{failed}\n"
+            f"{markdown_table(header, body)}\n\n{failed}\n"
         )
     return "\n".join(parts) if parts else "no episodes stored for this selection\n"
 
@@ -460,10 +464,23 @@ def _stat_cells(s: ErrorStats, digits: int) -> list[str]:
     return [str(s.n)] + [_cell(getattr(s, c), digits) for c in STAT_COLUMNS[1:]]
 
 
-def _md_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> str:
+def markdown_table(header: Sequence[str], body: Sequence[Sequence[str]]) -> str:
+    """The one Markdown table writer (reports, `comexp-db`, the bench): cells as given, with
+    a `|` or a line break inside a cell escaped so the table stays one row per line."""
+
+    def cell(text: str) -> str:
+        return str(text).replace("|", "\\|").replace("\n", " ")
+
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in body]
+    lines += ["| " + " | ".join(cell(c) for c in row) + " |" for row in body]
     return "\n".join(lines)
+
+
+def fmt_value(v: Any) -> str:
+    """A stored value as a table shows it: floats short (`fmt_num`), None blank."""
+    if isinstance(v, float):
+        return fmt_num(v)
+    return "" if v is None else str(v)
 
 
 def table_markdown(t: ConditionTable, *, digits: int = 3) -> str:
@@ -474,7 +491,7 @@ def table_markdown(t: ConditionTable, *, digits: int = 3) -> str:
     pooled = f"; {t.pooled_text()}" if t.pooled else ""
     return (
         f"### {t.condition.label()}\n\nerror_cm over ok episodes (std: sample, ddof=1){pooled}"
-        f"\n\n{_md_table(header, body)}\n\n{t.failure_text()}\n"
+        f"\n\n{markdown_table(header, body)}\n\n{t.failure_text()}\n"
     )
 
 
@@ -512,9 +529,8 @@ def summary_markdown(tables: Sequence[ConditionTable], *, digits: int = 3) -> st
                 reasons,
             ]
         )
-    return (
-        f"## Summary: error_cm per condition (std: sample, ddof=1)\n\n{_md_table(header, body)}\n"
-    )
+    table = markdown_table(header, body)
+    return f"## Summary: error_cm per condition (std: sample, ddof=1)\n\n{table}\n"
 
 
 def summary_csv(tables: Sequence[ConditionTable], *, digits: int = 6) -> str:

@@ -1,0 +1,2 @@
+"""The method, free of any simulator or experiment: frames and units (`scene`), polygon
+geometry, perception from a depth image, and the estimator (the paper's Algorithms 1 and 2)."""

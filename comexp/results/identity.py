@@ -1,0 +1,54 @@
+"""Episode identity: `episode_key`, a hash of the whole spec, so that a resumed or raced sweep
+never stores an episode twice (the database's UNIQUE ``episode_key`` with ``ON CONFLICT DO
+NOTHING``), and the canonical JSON the key and the stored `spec` / `estimator` columns share.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import numbers
+from typing import Any
+
+from comexp.experiment.episode import EpisodeSpec
+
+KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
+
+
+def _canonical(value: Any) -> Any:
+    """JSON-ready form whose text does not depend on int-vs-float spelling or container type.
+
+    40 and 40.0 (Hydra may give either) both become 40; other floats keep Python's shortest
+    round-trip repr, which is stable across platforms; tuples become lists.
+    """
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        x = float(value)
+        if math.isfinite(x) and x.is_integer() and abs(x) < 2**53:
+            return int(x)
+        return x
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_canonical(v) for v in value]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _canonical(dataclasses.asdict(value))
+    if hasattr(value, "tolist"):  # numpy scalars and arrays
+        return _canonical(value.tolist())
+    raise TypeError(f"cannot build an episode key from a {type(value).__name__}: {value!r}")
+
+
+def canonical_json(value: Any) -> str:
+    """Sorted-key compact JSON of `_canonical(value)`."""
+    return json.dumps(_canonical(value), sort_keys=True, separators=(",", ":"), allow_nan=True)
+
+
+def episode_key(spec: EpisodeSpec) -> str:
+    """Identity of an episode: sha256 of every spec field, so fields added later count too."""
+    text = KEY_VERSION + ":" + canonical_json(spec)
+    return hashlib.sha256(text.encode()).hexdigest()
