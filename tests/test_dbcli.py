@@ -252,3 +252,11 @@ def test_console_script_is_installed_and_prints_no_traceback(tmp_path: Path) -> 
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.startswith("comexp-db: error: database not found")
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
+
+
+def test_claims_print_means_and_verdicts(study_path: Path, capsys) -> None:
+    code, out, err = run(capsys, "--db", str(study_path), "claims", "--floor", "iso")
+    assert code == 0, err
+    assert "| backend | floor | speed cm/s | n | mean error cm | 95% CI | paper |" in out
+    assert "dynamic beats quasi-static" in out and "| aniso |" not in out
+    assert out.count("**") % 2 == 0 and any(v in out for v in ("holds", "fails", "inconclusive"))

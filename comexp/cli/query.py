@@ -136,6 +136,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_condition_filters(pp)
 
+    c = sub.add_parser(
+        "claims", help="the paper's claims per study: paired differences, bootstrap 95% CIs"
+    )
+    _add_condition_filters(c)
+    c.add_argument("--seed", type=_nonneg_int, default=0, help="bootstrap seed (0)")
+
     e = sub.add_parser("episodes", help="list or export episodes")
     _add_condition_filters(e)
     e.add_argument("--com-index", type=_nonneg_int)
@@ -269,6 +275,10 @@ def _run(args: argparse.Namespace, out: Any) -> None:
             out.write(summary_csv(tables) if args.format == "csv" else summary_markdown(tables))
         elif args.command == "paper":
             out.write(paper_markdown(paper_tables(db, flt)))
+        elif args.command == "claims":
+            from comexp.results.claims import CLAIM_COLUMNS, claims_markdown
+
+            out.write(claims_markdown(db.episodes(flt, columns=CLAIM_COLUMNS), seed=args.seed))
         elif args.command == "episodes":
             cols = _episode_columns(args.columns)
             rows = db.episodes(flt, columns=cols, limit=args.limit)

@@ -28,11 +28,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from comexp.results import paper
-from comexp.results.reports import FRICTION_COLUMNS, Condition, group_episodes
+from comexp.results.reports import (
+    CONDITION_COLUMNS,
+    FRICTION_COLUMNS,
+    Condition,
+    group_episodes,
+    markdown_table,
+)
 
 # The columns a claim varies; the others define a study (see the module docstring).
 VARIED = ("speed_cm_s", "izz_scale", *FRICTION_COLUMNS)
 DYNAMIC_CM_S, QUASI_STATIC_CM_S = 40.0, 4.0
+# The episode columns the claims read (`comexp-db claims` asks the database for these).
+CLAIM_COLUMNS = (*CONDITION_COLUMNS, "object", "com_index", "status", "error_cm")
 N_BOOTSTRAP = 2000
 
 # A paired sample: per (object, com) cluster, the per-pair values of each quantity.
@@ -246,29 +254,27 @@ def claims_markdown(rows: Iterable[Mapping], seed: int = 0, digits: int = 3) -> 
     def ci(lo: float, hi: float) -> str:
         return f"[{cell(lo)}, {cell(hi)}]"
 
-    lines = [
-        "| backend | floor | speed cm/s | n | mean error cm | 95% CI | paper |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    lines += [
-        f"| {m.backend} | {m.floor} | {m.speed_cm_s:g} | {m.n} | {cell(m.mean_cm)} | "
-        f"{ci(m.low_cm, m.high_cm)} | {'' if m.paper_cm is None else cell(m.paper_cm)} |"
-        for m in means
-    ]
-    lines += [
-        "",
-        "| backend | floor | claim | statistic | n pairs | value cm | 95% CI | verdict |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    lines += [
-        f"| {c.backend} | {c.floor} | {c.claim} | {c.statistic} | {c.n_pairs} | "
-        f"{cell(c.value_cm)} | {ci(c.low_cm, c.high_cm)} | **{c.verdict}** |"
-        for c in claims
-    ]
-    return "\n".join(lines) + "\n"
+    mean_table = markdown_table(
+        ["backend", "floor", "speed cm/s", "n", "mean error cm", "95% CI", "paper"],
+        [
+            [m.backend, m.floor, f"{m.speed_cm_s:g}", str(m.n), cell(m.mean_cm),
+             ci(m.low_cm, m.high_cm), "" if m.paper_cm is None else cell(m.paper_cm)]
+            for m in means
+        ],
+    )  # fmt: skip
+    claim_table = markdown_table(
+        ["backend", "floor", "claim", "statistic", "n pairs", "value cm", "95% CI", "verdict"],
+        [
+            [c.backend, c.floor, c.claim, c.statistic, str(c.n_pairs), cell(c.value_cm),
+             ci(c.low_cm, c.high_cm), f"**{c.verdict}**"]
+            for c in claims
+        ],
+    )  # fmt: skip
+    return f"{mean_table}\n\n{claim_table}\n"
 
 
 __all__ = [
+    "CLAIM_COLUMNS",
     "ClaimResult",
     "MeanResult",
     "claims_markdown",
