@@ -356,7 +356,11 @@ def _validate_estimator(est: Any) -> EstimatorSettings:
     try:
         return estimator_settings(est)
     except (TypeError, ValueError) as e:  # the settings' own checks, if any
-        raise ConfigError(f"estimator: {str(e).splitlines()[0]}") from None
+        msg = str(e).splitlines()[0]
+        for cfg_name, name, _, _ in _ESTIMATOR_FIELDS:  # name the knob as the command line does
+            if msg.startswith(name + " "):
+                raise ConfigError(f"estimator.{cfg_name}{msg[len(name) :]}") from None
+        raise ConfigError(f"estimator: {msg}") from None
 
 
 # --- database location ---------------------------------------------------------------------

@@ -19,10 +19,17 @@ Use with a real robot (no simulator)::
     region, estimate = estimate_com(region, pushes, pixel_m=0.0027)
 
 or drive Algorithm 1 step by step with `ComEstimator` (it proposes the next contact).
+
+`EstimatorSettings.method="magnitude"` (ours, beyond the paper; docs/method.md, "Beyond the
+paper") also uses how much the object turns: within the region the signs allow, the CoM is the
+point whose lever arms (P_i - G) x N_i best explain the measured rotations with one per-episode
+gain, rot_i ~ k f((P_i - G) x N_i) (f linear, or saturating as the impact's l / (rho^2 + l^2)).
+Same API: `estimate_com(..., settings=EstimatorSettings(method="magnitude"))`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -31,6 +38,17 @@ import shapely
 
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
+METHODS = ("paper", "magnitude")
+# Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
+# squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
+# (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
+# rho^2, is unknown to the robot (the study scales it by 1 or 10). Chosen on planar pushes at
+# 40 cm/s (docs/method.md): the impact gives omega = v l / (rho^2 + l^2).
+SATURATION_BETAS = (1.0, 3.0, 10.0, math.inf)
+# Alg. 1 with `magnitude` proposes pushes that cut the posterior's credible set (this share of
+# its mass), so that they are informative where the CoM probably is, not across the whole
+# sign-consistent region.
+CREDIBLE_MASS = 0.9
 
 
 @dataclass(frozen=True)
@@ -51,6 +69,12 @@ class EstimatorSettings:
     # --- contact candidates ----------------------------------------------------------------
     contact_spacing_px: float = 2.0  # arc length between sampled contour points
     check_reachability: bool = True  # drop contacts the pusher cannot reach along -N
+    # --- beyond the paper (docs/method.md, "Beyond the paper") -------------------------------
+    method: str = "paper"  # paper (Algorithms 1-2) | magnitude (also fits how much it turns)
+    mag_noise_deg: float = 1.0  # magnitude: rotation noise floor sigma0 (vision, unmodelled)
+    mag_rel_noise: float = (
+        0.2  # magnitude: relative model error alpha, sigma^2 = sigma0^2 + (alpha rot)^2
+    )
 
     def __post_init__(self) -> None:
         if self.rotation_source not in ROTATION_SOURCES:
@@ -67,6 +91,12 @@ class EstimatorSettings:
             raise ValueError(f"n_push must be >= 0, got {self.n_push}")
         if self.contact_spacing_px <= 0:
             raise ValueError("contact_spacing_px must be > 0")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if not (math.isfinite(self.mag_noise_deg) and self.mag_noise_deg > 0):
+            raise ValueError(f"mag_noise_deg must be > 0, got {self.mag_noise_deg!r}")
+        if not (math.isfinite(self.mag_rel_noise) and self.mag_rel_noise >= 0):
+            raise ValueError(f"mag_rel_noise must be >= 0, got {self.mag_rel_noise!r}")
 
 
 def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -220,6 +250,78 @@ def update_region(
     return region[keep], decision
 
 
+def lever_arms(candidates: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """(P_j - G_i) x N_j for every candidate CoM G_i and push j: (n, m), metres; the rotation
+    has its sign (CCW positive)."""
+    G = np.asarray(candidates, dtype=float).reshape(-1, 2)
+    P = np.asarray(P, dtype=float).reshape(-1, 2)
+    N = np.asarray(N, dtype=float).reshape(-1, 2)
+    return (P[None, :, 0] - G[:, 0, None]) * N[None, :, 1] - (P[None, :, 1] - G[:, 1, None]) * N[
+        None, :, 0
+    ]
+
+
+def magnitude_misfit(
+    candidates: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    rotation_deg: np.ndarray,
+    settings: EstimatorSettings,
+    footprint_m: np.ndarray,
+) -> np.ndarray:
+    """How badly each candidate CoM explains the measured rotations: chi^2, (n,).
+
+    Model: rot_j = k f(l_j) with l_j = (P_j - G) x N_j, one gain k >= 0 per episode (it holds
+    the speed, friction and Izz, which are fixed within an episode), fitted in closed form per
+    candidate; f(l) = l / (1 + l^2 / (beta rho0^2(G))) with beta profiled over
+    `SATURATION_BETAS` (inf: linear), rho0^2(G) the squared radius of gyration of `footprint_m`
+    (the initial region, uniform density) about G. Residuals are weighted by
+    1 / (sigma0^2 + (alpha rot_j)^2): a large turn says less about its exact lever than a small
+    one (saturation, the direction's own gain), and a turn near zero pins the line near G.
+    """
+    G = np.asarray(candidates, dtype=float).reshape(-1, 2)
+    rot = np.asarray(rotation_deg, dtype=float).reshape(-1)
+    if len(rot) == 0 or len(G) == 0:
+        return np.zeros(len(G))
+    foot = np.asarray(footprint_m, dtype=float).reshape(-1, 2)
+    c = foot.mean(axis=0)
+    rho2 = ((foot - c) ** 2).sum(axis=1).mean() + ((G - c) ** 2).sum(axis=1)  # (n,)
+    lev = lever_arms(G, P, N)
+    w = 1.0 / (settings.mag_noise_deg**2 + (settings.mag_rel_noise * rot) ** 2)
+    best = np.full(len(G), np.inf)
+    for beta in SATURATION_BETAS:
+        f = lev if math.isinf(beta) else lev / (1.0 + lev * lev / (beta * rho2[:, None]))
+        k = (w * rot * f).sum(axis=1) / np.maximum((w * f * f).sum(axis=1), 1e-300)
+        k = np.maximum(k, 0.0)  # the object turns with the moment, never against it
+        best = np.minimum(best, (w * (rot - k[:, None] * f) ** 2).sum(axis=1))
+    return best
+
+
+def magnitude_posterior(
+    region: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    rotation_deg: np.ndarray,
+    settings: EstimatorSettings,
+    footprint_m: np.ndarray,
+) -> np.ndarray:
+    """Weights (n,), summing to 1, of the region's points: exp(-chi^2 / 2) of
+    `magnitude_misfit`, i.e. a likelihood with a uniform prior over the sign-consistent
+    region."""
+    chi = magnitude_misfit(region, P, N, rotation_deg, settings, footprint_m)
+    p = np.exp(-(chi - chi.min()) / 2.0) if len(chi) else chi
+    return p / p.sum() if len(p) else p
+
+
+def credible_set(
+    region: np.ndarray, weights: np.ndarray, mass: float = CREDIBLE_MASS
+) -> np.ndarray:
+    """The fewest points of `region` holding `mass` of the weights (at least one)."""
+    order = np.argsort(-weights, kind="stable")
+    n = int(np.searchsorted(np.cumsum(weights[order]), mass * weights.sum())) + 1
+    return region[np.sort(order[: min(n, len(order))])]
+
+
 @dataclass(frozen=True)
 class ObservedPush:
     """One push as a robot sees it, in the object frame: contact point (m), unit push direction
@@ -236,17 +338,29 @@ def estimate_com(
     pixel_m: float,
     settings: EstimatorSettings | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Apply Algorithm 2 for each observed push; returns (final region, estimate = its centroid).
+    """Apply Algorithm 2 for each observed push; returns (final region, estimate).
 
     `region_m` is the initial CoM region: points inside the object's convex hull on a regular
     grid of spacing `pixel_m` (the pixel size that turns C_bw from pixels into metres).
+    The estimate is the final region's centroid (`method="paper"`), or, with
+    `method="magnitude"`, the mean of the final (sign-consistent) region weighted by
+    `magnitude_posterior` of all the pushes.
     """
     settings = settings or EstimatorSettings()
-    region = np.asarray(region_m, dtype=float)
+    initial = np.asarray(region_m, dtype=float)
+    region = initial
+    pushes = list(pushes)
     for push in pushes:
         region, _ = update_region(
             region, push.contact_m, push.direction, push.rotation_deg, settings, pixel_m
         )
+    if settings.method == "magnitude" and pushes:
+        P = np.array([p.contact_m for p in pushes], dtype=float)
+        N = np.array([p.direction for p in pushes], dtype=float)
+        N /= np.linalg.norm(N, axis=1, keepdims=True)
+        rot = np.array([p.rotation_deg for p in pushes], dtype=float)
+        w = magnitude_posterior(region, P, N, rot, settings, initial)
+        return region, w @ region
     return region, region.mean(axis=0)
 
 
@@ -255,6 +369,9 @@ class ComEstimator:
 
     Candidates are the sampled contour points with inward normals (object frame); with an
     outline and a pusher radius, contacts the pusher cannot reach are dropped once up front.
+    With `method="magnitude"` the estimate is the posterior mean over the region (see
+    `estimate_com`) and Algorithm 1 is run on the posterior's credible set (the region when no
+    push line cuts it), so pushes aim where the CoM probably is.
     """
 
     def __init__(
@@ -269,6 +386,9 @@ class ComEstimator:
     ) -> None:
         self.settings = settings or EstimatorSettings()
         self.region = np.asarray(region_m, dtype=float)
+        self.initial_region = self.region
+        self._observed: list[tuple[np.ndarray, np.ndarray, float]] = []
+        self._weights: np.ndarray | None = None  # magnitude posterior over self.region
         self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
         n = np.asarray(normals, dtype=float).reshape(-1, 2)
         self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
@@ -282,7 +402,16 @@ class ComEstimator:
 
     @property
     def estimate_m(self) -> np.ndarray:
+        if self._weights is not None:
+            return self._weights @ self.region
         return self.region.mean(axis=0)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """The region's points' weights in the estimate (uniform for `paper`)."""
+        if self._weights is not None:
+            return self._weights
+        return np.full(len(self.region), 1.0 / max(len(self.region), 1))
 
     @property
     def region_px(self) -> int:
@@ -291,9 +420,16 @@ class ComEstimator:
     def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(contact, direction) of the best valid push, or None when no push line cuts the
         region (or none is reachable)."""
-        j = choose_contact(
-            self.region, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
-        )
+        j = None
+        if self._weights is not None:  # magnitude: where the CoM probably is
+            core = credible_set(self.region, self._weights)
+            j = choose_contact(
+                core, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
+            )
+        if j is None:
+            j = choose_contact(
+                self.region, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
+            )
         if j is None:
             return None
         return self.contacts[j].copy(), self.normals[j].copy()
@@ -303,4 +439,13 @@ class ComEstimator:
         self.region, decision = update_region(
             self.region, contact_m, direction, rotation_deg, self.settings, self.pixel_m
         )
+        if self.settings.method == "magnitude":
+            n = np.asarray(direction, dtype=float)
+            self._observed.append(
+                (np.asarray(contact_m, dtype=float), n / np.linalg.norm(n), float(rotation_deg))
+            )
+            P, N, rot = (np.array(x) for x in zip(*self._observed, strict=True))
+            self._weights = magnitude_posterior(
+                self.region, P, N, rot, self.settings, self.initial_region
+            )
         return decision
