@@ -45,10 +45,10 @@ METHODS = ("paper", "magnitude")
 # rho^2, is unknown to the robot (the study scales it by 1 or 10). Chosen on planar pushes at
 # 40 cm/s (docs/method.md): the impact gives omega = v l / (rho^2 + l^2).
 SATURATION_BETAS = (1.0, 3.0, 10.0, math.inf)
-# Alg. 1 with `magnitude` proposes pushes that cut the posterior's credible set (this share of
-# its mass), so that they are informative where the CoM probably is, not across the whole
-# sign-consistent region.
-CREDIBLE_MASS = 0.9
+# The magnitude posterior is sharper than a pixel when a push line passes through the CoM (a
+# turn of 0.5 deg against a gain of ~20 deg/cm places the line within 0.3 mm), so it is
+# evaluated on a grid this many times finer than the region's.
+SUBPIXEL = 3
 
 
 @dataclass(frozen=True)
@@ -115,6 +115,22 @@ def pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return c, vec[:, ::-1], lam[::-1]
 
 
+def weighted_pca(
+    points: np.ndarray, weights: np.ndarray, floor_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`pca` of a weighted point set (the magnitude posterior): mean, axes, variances. A point
+    set is a grid, so `floor_m`^2 / 12 (a grid cell's own variance) is added to the covariance:
+    a posterior sharper than the grid has no main axis to speak of."""
+    pts = np.asarray(points, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    c = w @ pts
+    d = pts - c
+    cov = (d * w[:, None]).T @ d + np.eye(2) * floor_m**2 / 12.0
+    lam, vec = np.linalg.eigh(cov)
+    return c, vec[:, ::-1], lam[::-1]
+
+
 def line_cuts_region(region: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
     """For each push line (P_i, N_i): does it pass through the region, i.e. leave region points
     strictly on both sides? (M,) bool. Vectorised over contacts x region points."""
@@ -164,6 +180,7 @@ def score_contacts(
     N: np.ndarray,
     settings: EstimatorSettings,
     pixel_m: float,
+    centre_axes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Eq. (1): s = w1 d + w2 cos, lower is better (Alg. 1 lines 3, 5, 6).
 
@@ -171,8 +188,9 @@ def score_contacts(
     splits the region near its middle); cos = N . V1 is small when the push line crosses the
     region's long axis (so the region does not stay prolate). V1's sign is arbitrary, so the
     physical reading is |N . V1|; an unsigned d likewise (a line far on either side is as bad).
+    `centre_axes` = (c, V) replaces the region's own (`magnitude`: the posterior's).
     """
-    c, V, _ = pca(region)
+    c, V = centre_axes if centre_axes is not None else pca(region)[:2]
     v1 = V[:, 0]
     cp = c[None, :] - P
     if settings.d_metric == "sine":
@@ -195,11 +213,12 @@ def choose_contact(
     settings: EstimatorSettings,
     pixel_m: float,
     allowed: np.ndarray | None = None,
+    centre_axes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> int | None:
     """Index of the best valid contact (Alg. 1 lines 3-7), None if no push line cuts the region.
 
     `allowed` masks out contacts that are invalid for reasons other than the region (e.g.
-    unreachable, see `reachable_contacts`).
+    unreachable, see `reachable_contacts`); `centre_axes` see `score_contacts`.
     """
     if len(P) == 0 or len(region) == 0:
         return None
@@ -210,7 +229,7 @@ def choose_contact(
         valid[allowed] = line_cuts_region(region, P[allowed], N[allowed])
     if not valid.any():
         return None
-    s = score_contacts(region, P, N, settings, pixel_m)
+    s = score_contacts(region, P, N, settings, pixel_m, centre_axes)
     s = np.where(valid, s, np.inf)
     return int(np.argmin(s))
 
@@ -313,13 +332,74 @@ def magnitude_posterior(
     return p / p.sum() if len(p) else p
 
 
-def credible_set(
-    region: np.ndarray, weights: np.ndarray, mass: float = CREDIBLE_MASS
+def refine_grid(region: np.ndarray, pixel_m: float, n: int = SUBPIXEL) -> np.ndarray:
+    """Every point of a regular grid of spacing `pixel_m` replaced by the n x n points of
+    spacing pixel_m / n that tile its cell: the same area, n^2 times the points."""
+    o = (np.arange(n) - (n - 1) / 2.0) * pixel_m / n
+    off = np.stack(np.meshgrid(o, o), axis=-1).reshape(-1, 2)
+    return (np.asarray(region, dtype=float)[:, None, :] + off[None]).reshape(-1, 2)
+
+
+class MagnitudePosterior:
+    """The magnitude method's state: the sign-consistent region on the fine grid (the same
+    Algorithm 2 updates as the region) and the observed pushes; weights and estimate on it."""
+
+    def __init__(self, region_m: np.ndarray, pixel_m: float, settings: EstimatorSettings):
+        self.settings = settings
+        self.pixel_m = float(pixel_m)
+        self.footprint = np.asarray(region_m, dtype=float)
+        self.points = refine_grid(self.footprint, self.pixel_m)
+        self.weights = np.full(len(self.points), 1.0 / max(len(self.points), 1))
+        self._pushes: list[tuple[np.ndarray, np.ndarray, float]] = []
+
+    def observe(self, contact_m: Sequence[float], direction: Sequence[float], rot_deg: float):
+        P = np.asarray(contact_m, dtype=float)
+        N = np.asarray(direction, dtype=float)
+        N = N / np.linalg.norm(N)
+        self.points, _ = update_region(self.points, P, N, rot_deg, self.settings, self.pixel_m)
+        self._pushes.append((P, N, float(rot_deg)))
+        Ps, Ns, rot = (np.array(x) for x in zip(*self._pushes, strict=True))
+        self.weights = magnitude_posterior(self.points, Ps, Ns, rot, self.settings, self.footprint)
+
+    @property
+    def estimate_m(self) -> np.ndarray:
+        return self.weights @ self.points
+
+    def centre_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and principal axes, for Algorithm 1's score."""
+        c, V, _ = weighted_pca(self.points, self.weights, self.pixel_m / SUBPIXEL)
+        return c, V
+
+
+def floor_force_direction(
+    direction: Sequence[float],
+    yaw_rad: float,
+    mu_x: float,
+    mu_y: float,
+    mu_pusher: float,
+    share: float = 0.5,
 ) -> np.ndarray:
-    """The fewest points of `region` holding `mass` of the weights (at least one)."""
-    order = np.argsort(-weights, kind="stable")
-    n = int(np.searchsorted(np.cumsum(weights[order]), mass * weights.sum())) + 1
-    return region[np.sort(order[: min(n, len(order))])]
+    """The line of action to expect for a push along `direction` (object frame, unit) on a
+    floor with friction mu_x, mu_y along its world axes, the object at world yaw `yaw_rad`.
+
+    Why: on an anisotropic floor the friction of an object sliding along u is along
+    -(mu_x^2 u_x, mu_y^2 u_y), not -u; the force that balances it is turned away from the push
+    direction by the angle phi between u and that vector, as far as the pusher's friction cone
+    (atan mu_pusher) allows, and the object turns about the line of that force, not of the
+    push. `share` of phi (0.5, measured on planar pushes: docs/method.md, "Beyond the paper") is
+    applied, since the object does not only translate. Isotropic floors: `direction` itself.
+    """
+    n = np.asarray(direction, dtype=float)
+    n = n / np.linalg.norm(n)
+    if mu_x == mu_y:
+        return n
+    th = math.atan2(n[1], n[0]) + yaw_rad  # world direction of the push
+    th_f = math.atan2(mu_y**2 * math.sin(th), mu_x**2 * math.cos(th))
+    phi = (th_f - th + math.pi) % (2 * math.pi) - math.pi
+    cone = math.atan(max(mu_pusher, 0.0))
+    phi = min(max(share * phi, -cone), cone)
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([c * n[0] - s * n[1], s * n[0] + c * n[1]])
 
 
 @dataclass(frozen=True)
@@ -330,6 +410,10 @@ class ObservedPush:
     contact_m: tuple[float, float]
     direction: tuple[float, float]
     rotation_deg: float
+    # `magnitude` only: the line of action the floor model expects for the push's force, if it
+    # differs from `direction` (anisotropic floors, see `floor_force_direction`); None = along
+    # `direction`. The paper's method ignores it.
+    line_direction: tuple[float, float] | None = None
 
 
 def estimate_com(
@@ -343,24 +427,23 @@ def estimate_com(
     `region_m` is the initial CoM region: points inside the object's convex hull on a regular
     grid of spacing `pixel_m` (the pixel size that turns C_bw from pixels into metres).
     The estimate is the final region's centroid (`method="paper"`), or, with
-    `method="magnitude"`, the mean of the final (sign-consistent) region weighted by
-    `magnitude_posterior` of all the pushes.
+    `method="magnitude"`, the mean of `magnitude_posterior` of all the pushes over the final
+    region (sign-consistent; on a grid `SUBPIXEL` times finer).
     """
     settings = settings or EstimatorSettings()
-    initial = np.asarray(region_m, dtype=float)
-    region = initial
-    pushes = list(pushes)
+    region = np.asarray(region_m, dtype=float)
+    post = MagnitudePosterior(region, pixel_m, settings) if settings.method == "magnitude" else None
     for push in pushes:
+        line = push.direction
+        if post is not None and push.line_direction is not None:
+            line = push.line_direction
         region, _ = update_region(
-            region, push.contact_m, push.direction, push.rotation_deg, settings, pixel_m
+            region, push.contact_m, line, push.rotation_deg, settings, pixel_m
         )
-    if settings.method == "magnitude" and pushes:
-        P = np.array([p.contact_m for p in pushes], dtype=float)
-        N = np.array([p.direction for p in pushes], dtype=float)
-        N /= np.linalg.norm(N, axis=1, keepdims=True)
-        rot = np.array([p.rotation_deg for p in pushes], dtype=float)
-        w = magnitude_posterior(region, P, N, rot, settings, initial)
-        return region, w @ region
+        if post is not None:
+            post.observe(push.contact_m, line, push.rotation_deg)
+    if post is not None:
+        return region, post.estimate_m
     return region, region.mean(axis=0)
 
 
@@ -369,9 +452,10 @@ class ComEstimator:
 
     Candidates are the sampled contour points with inward normals (object frame); with an
     outline and a pusher radius, contacts the pusher cannot reach are dropped once up front.
-    With `method="magnitude"` the estimate is the posterior mean over the region (see
-    `estimate_com`) and Algorithm 1 is run on the posterior's credible set (the region when no
-    push line cuts it), so pushes aim where the CoM probably is.
+    With `method="magnitude"` the estimate is the posterior mean (see `estimate_com`), and
+    Algorithm 1 scores push lines against the posterior's mean and main axis instead of the
+    region's (validity is unchanged: the line cuts the region), so pushes aim where the CoM
+    probably is, across the direction it is least certain in.
     """
 
     def __init__(
@@ -386,13 +470,15 @@ class ComEstimator:
     ) -> None:
         self.settings = settings or EstimatorSettings()
         self.region = np.asarray(region_m, dtype=float)
-        self.initial_region = self.region
-        self._observed: list[tuple[np.ndarray, np.ndarray, float]] = []
-        self._weights: np.ndarray | None = None  # magnitude posterior over self.region
+        self.pixel_m = float(pixel_m)
+        self.posterior = (
+            MagnitudePosterior(self.region, self.pixel_m, self.settings)
+            if self.settings.method == "magnitude"
+            else None
+        )
         self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
         n = np.asarray(normals, dtype=float).reshape(-1, 2)
         self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-        self.pixel_m = float(pixel_m)
         if self.settings.check_reachability and outline_m is not None and pusher_radius_m:
             self.allowed = reachable_contacts(
                 outline_m, self.contacts, self.normals, pusher_radius_m
@@ -402,16 +488,9 @@ class ComEstimator:
 
     @property
     def estimate_m(self) -> np.ndarray:
-        if self._weights is not None:
-            return self._weights @ self.region
+        if self.posterior is not None:
+            return self.posterior.estimate_m
         return self.region.mean(axis=0)
-
-    @property
-    def weights(self) -> np.ndarray:
-        """The region's points' weights in the estimate (uniform for `paper`)."""
-        if self._weights is not None:
-            return self._weights
-        return np.full(len(self.region), 1.0 / max(len(self.region), 1))
 
     @property
     def region_px(self) -> int:
@@ -420,32 +499,34 @@ class ComEstimator:
     def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(contact, direction) of the best valid push, or None when no push line cuts the
         region (or none is reachable)."""
-        j = None
-        if self._weights is not None:  # magnitude: where the CoM probably is
-            core = credible_set(self.region, self._weights)
-            j = choose_contact(
-                core, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
-            )
-        if j is None:
-            j = choose_contact(
-                self.region, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
-            )
+        centre_axes = self.posterior.centre_axes() if self.posterior is not None else None
+        j = choose_contact(
+            self.region,
+            self.contacts,
+            self.normals,
+            self.settings,
+            self.pixel_m,
+            self.allowed,
+            centre_axes,
+        )
         if j is None:
             return None
         return self.contacts[j].copy(), self.normals[j].copy()
 
-    def observe(self, contact_m: np.ndarray, direction: np.ndarray, rotation_deg: float) -> str:
-        """Algorithm 2 with the measured rotation; returns the decision (ccw, cw, band)."""
+    def observe(
+        self,
+        contact_m: np.ndarray,
+        direction: np.ndarray,
+        rotation_deg: float,
+        line_direction: np.ndarray | None = None,
+    ) -> str:
+        """Algorithm 2 with the measured rotation; returns the decision (ccw, cw, band).
+        `line_direction`: see `ObservedPush` (`magnitude` only; the paper ignores it)."""
+        if self.posterior is not None and line_direction is not None:
+            direction = line_direction
         self.region, decision = update_region(
             self.region, contact_m, direction, rotation_deg, self.settings, self.pixel_m
         )
-        if self.settings.method == "magnitude":
-            n = np.asarray(direction, dtype=float)
-            self._observed.append(
-                (np.asarray(contact_m, dtype=float), n / np.linalg.norm(n), float(rotation_deg))
-            )
-            P, N, rot = (np.array(x) for x in zip(*self._observed, strict=True))
-            self._weights = magnitude_posterior(
-                self.region, P, N, rot, self.settings, self.initial_region
-            )
+        if self.posterior is not None:
+            self.posterior.observe(contact_m, direction, rotation_deg)
         return decision

@@ -13,17 +13,19 @@ from comexp.estimator import (
     EstimatorSettings,
     ObservedPush,
     choose_contact,
-    credible_set,
     cross2,
     estimate_com,
+    floor_force_direction,
     lever_arms,
     line_cuts_region,
     magnitude_misfit,
     magnitude_posterior,
     pca,
     reachable_contacts,
+    refine_grid,
     score_contacts,
     update_region,
+    weighted_pca,
 )
 
 PX = 0.0025  # metres per pixel of the synthetic grids
@@ -309,11 +311,11 @@ def test_magnitude_is_robust_to_a_saturating_law_and_noise(poly):
 
 
 def test_magnitude_estimate_stays_in_the_sign_region():
-    """Magnitudes that point outside the region the signs allow cannot move the estimate out:
-    the posterior lives on the sign-consistent points only."""
+    """The posterior lives on the sign-consistent points only, whatever the magnitudes say
+    (here a huge and a tiny turn that fit no single gain well)."""
     region = grid_in(rect(0.05, 0.03))
     # CCW for a north push at x = 0: G is west (x < 0); CW for an east push at y = 0: G is
-    # south (y < 0). The magnitudes (one huge, one tiny) are best explained by a G far east.
+    # south (y < 0); CCW for a north push at x = 0.03: west of it (no new cut).
     pushes = [
         ObservedPush((0.0, -0.03), (0.0, 1.0), 2.0),
         ObservedPush((-0.05, 0.0), (1.0, 0.0), -60.0),
@@ -321,8 +323,9 @@ def test_magnitude_estimate_stays_in_the_sign_region():
     ]
     final, est = estimate_com(region, pushes, PX, MAG)
     assert (final[:, 0] < 0).all() and (final[:, 1] < 0).all()
-    hull = shapely.MultiPoint(final.tolist()).convex_hull
-    assert hull.buffer(1e-9).contains(shapely.Point(est))
+    assert est[0] < 0 and est[1] < 0  # the signs' half-planes hold for the estimate itself
+    hull = shapely.MultiPoint(final.tolist()).convex_hull  # within the region's cells
+    assert hull.buffer(PX / 2 * math.sqrt(2)).contains(shapely.Point(est))
     P = np.array([p.contact_m for p in pushes])
     N = np.array([p.direction for p in pushes])
     rot = np.array([p.rotation_deg for p in pushes])
@@ -337,12 +340,37 @@ def test_magnitude_without_pushes_is_the_centroid():
     np.testing.assert_allclose(est, region.mean(axis=0))
 
 
-def test_credible_set_holds_the_mass():
-    region = np.arange(10.0).reshape(5, 2)
-    w = np.array([0.05, 0.5, 0.3, 0.1, 0.05])
-    np.testing.assert_array_equal(credible_set(region, w, 0.75), region[[1, 2]])
-    np.testing.assert_array_equal(credible_set(region, w, 0.85), region[[1, 2, 3]])
-    assert len(credible_set(region, np.full(5, 0.2), 0.0)) == 1
+def test_refined_grid_tiles_the_cells():
+    region = grid_in(rect(0.01, 0.01))
+    fine = refine_grid(region, PX, 3)
+    assert len(fine) == 9 * len(region)
+    np.testing.assert_allclose(fine.mean(axis=0), region.mean(axis=0), atol=1e-12)
+    d = np.linalg.norm(fine[:9] - region[0], axis=1)
+    assert d.max() == pytest.approx(math.hypot(PX / 3, PX / 3))
+
+
+def test_weighted_pca_follows_the_weights():
+    pts = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    c, V, lam = weighted_pca(pts, np.array([1.0, 1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(c, [0.5, 0.0])
+    assert abs(V[0, 0]) == pytest.approx(1.0) and lam[1] == pytest.approx(0.0)
+    _, _, lam = weighted_pca(pts, np.array([1.0, 0, 0, 0]), floor_m=0.3)
+    np.testing.assert_allclose(lam, [0.0075, 0.0075])  # a grid cell's own variance
+
+
+def test_magnitude_pushes_cross_the_line_a_null_turn_found():
+    """After a push whose line passes through the CoM (no turn), the posterior is a strip
+    along that line; Algorithm 1 on the posterior then pushes across it, where the paper's
+    region centroid would have it push the same line again."""
+    poly = rect(0.05, 0.03)
+    G = np.array([0.0, 0.004])
+    P, N = edge_contacts(poly, step=0.003)
+    est = ComEstimator(grid_in(poly), P, N, PX, MAG, outline_m=poly, pusher_radius_m=0.005)
+    for p, n in (((0.001, -0.03), (0.0, 1.0)), ((-0.05, -0.01), (1.0, 0.0))):
+        est.observe(p, n, _ideal_rotation(G, p, n, 20.0))
+    est.observe((0.0, 0.03), (0.0, -1.0), 0.0)  # the line x = 0: through G
+    p, n = est.next_push()
+    assert abs(n[1]) < 0.5, "the next push crosses the vertical line"
 
 
 def test_paper_path_is_unchanged():
@@ -367,4 +395,44 @@ def test_paper_path_is_unchanged():
         ([0.03003849116986469, 0.02664100588675687], "ccw", 29),
     ]
     assert est.estimate_m.tolist() == [0.011508620689655216, -0.011077586206896533]
-    np.testing.assert_array_equal(est.weights, np.full(29, 1 / 29))
+    assert est.posterior is None
+
+
+def test_floor_force_direction():
+    """Isotropic floor: the push direction itself. Anisotropic: turned towards the floor's
+    friction direction for motion along the push (half way), within the pusher's cone, and
+    not at all along the floor's axes."""
+    n = np.array([math.sqrt(0.5), math.sqrt(0.5)])
+    np.testing.assert_array_equal(floor_force_direction(n, 0.3, 0.5, 0.5, 1.0), n)
+    for yaw in (0.0, math.pi / 2):  # pushing along a floor axis: no turn
+        d = floor_force_direction([1.0, 0.0], yaw, 0.1, 1.0, 1.0)
+        np.testing.assert_allclose(d, [1.0, 0.0], atol=1e-12)
+    # 45 deg on mu_x = 0.1, mu_y = 1: friction along ~y, phi ~ +44 deg, half of it applied
+    d = floor_force_direction(n, 0.0, 0.1, 1.0, 1.0)
+    phi = math.degrees(math.atan2(d[1], d[0])) - 45.0
+    assert phi == pytest.approx(0.5 * (math.degrees(math.atan(100.0)) - 45.0))
+    # the pusher's friction cone bounds it: mu_p = 0.1 -> at most atan(0.1)
+    d = floor_force_direction(n, 0.0, 0.1, 1.0, 0.1)
+    assert math.degrees(math.atan2(d[1], d[0])) - 45.0 == pytest.approx(
+        math.degrees(math.atan(0.1))
+    )
+    # the object's yaw counts: an object-frame north push at yaw -90 deg runs along world +x
+    d = floor_force_direction([0.0, 1.0], -math.pi / 2, 0.1, 1.0, 1.0)  # world +x: an axis
+    np.testing.assert_allclose(d, [0.0, 1.0], atol=1e-12)
+    assert np.linalg.norm(floor_force_direction(n, 1.0, 1.0, 0.1, 0.5)) == pytest.approx(1.0)
+
+
+def test_magnitude_uses_the_line_direction_and_the_paper_ignores_it():
+    """A push whose force line is turned (anisotropic floor) splits the region along that line
+    for `magnitude`; the paper's Algorithm 2 keeps using the push direction."""
+    region = grid_in(rect(0.05, 0.03))
+    turned = (math.sin(0.3), math.cos(0.3))  # north push, line turned 0.3 rad clockwise
+    push = ObservedPush((0.0, -0.03), (0.0, 1.0), 5.0, line_direction=turned)
+    paper_final, _ = estimate_com(region, [push], PX)
+    np.testing.assert_array_equal(paper_final, region[region[:, 0] < 0])
+    mag_final, _ = estimate_com(region, [push], PX, MAG)
+    side = cross2(np.array(turned), mag_final - np.array([0.0, -0.03]))
+    assert (side > 0).all() and len(mag_final) != len(paper_final)
+    est = ComEstimator(region, *edge_contacts(rect(0.05, 0.03)), PX, MAG)
+    est.observe(np.array([0.0, -0.03]), np.array([0.0, 1.0]), 5.0, np.array(turned))
+    np.testing.assert_array_equal(est.region, mag_final)
