@@ -72,9 +72,11 @@ class EstimatorSettings:
     # --- beyond the paper (docs/method.md, "Beyond the paper") -------------------------------
     method: str = "paper"  # paper (Algorithms 1-2) | magnitude (also fits how much it turns)
     mag_noise_deg: float = 1.0  # magnitude: rotation noise floor sigma0 (vision, unmodelled)
-    mag_rel_noise: float = (
-        0.2  # magnitude: relative model error alpha, sigma^2 = sigma0^2 + (alpha rot)^2
-    )
+    # magnitude: relative model error alpha of a turn, sigma^2 = sigma0^2 + (alpha rot)^2
+    mag_rel_noise: float = 0.2
+    # magnitude in episodes: the known floor and pusher friction turn each push's line of action
+    # (`floor_force_direction`); False = along the push direction, as the paper
+    mag_floor_model: bool = True
 
     def __post_init__(self) -> None:
         if self.rotation_source not in ROTATION_SOURCES:
