@@ -6,7 +6,7 @@ Reads a results database (no simulation); a push counts when it turned more than
 object's world yaw at each push is the seed's initial yaw plus the true rotations before it
 (re-centring keeps the yaw).
 
-    .venv/bin/python bench/force_lines.py --db results/comexp.db [--shares 0,0.25,0.5,1]
+    .venv/bin/python bench/force_lines.py --db results/comexp.db [--shares 0,0.5] [--by-pusher]
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--db", required=True, help="SQLite results file")
     ap.add_argument("--shares", default="0,0.25,0.3,0.5,0.6,1")
+    ap.add_argument("--by-pusher", action="store_true", help="one row per pusher friction too")
     args = ap.parse_args()
     shares = [float(s) for s in args.shares.split(",")]
     con = sqlite3.connect(f"file:{args.db}?mode=ro", uri=True)
@@ -50,7 +51,8 @@ def main() -> None:
                 for share in shares:
                     line = floor_force_direction((dx, dy), yaw, mux, muy, mup, share=share)
                     lever = float(cross2(np.array([cx - gx, cy - gy]), line))
-                    c = counted[(floor, share)]
+                    label = f"{floor}, pusher mu {mup:g}" if args.by_pusher else floor
+                    c = counted[(label, share)]
                     c[0] += 1
                     c[1] += int(math.copysign(1.0, lever) != math.copysign(1.0, rot))
             yaw += math.radians(rot_true)

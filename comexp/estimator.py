@@ -42,8 +42,8 @@ METHODS = ("paper", "magnitude")
 # Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
 # squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
 # (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
-# rho^2, is unknown to the robot (the study scales it by 1 or 10). Chosen on planar pushes at
-# 40 cm/s (docs/method.md): the impact gives omega = v l / (rho^2 + l^2).
+# rho^2, is unknown to the robot (the study scales it by 1 or 10). The form is the impact's
+# omega = v l / (rho^2 + l^2) (docs/method.md); the set was not tuned beyond a few trials.
 SATURATION_BETAS = (1.0, 3.0, 10.0, math.inf)
 # The magnitude posterior is sharper than a pixel when a push line passes through the CoM (a
 # turn of 0.5 deg against a gain of ~20 deg/cm places the line within 0.3 mm), so it is
