@@ -5,6 +5,7 @@ store, resume and survive Ctrl-C, and the two example commands of the brief.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -88,6 +89,7 @@ def test_help_and_cfg_work_from_any_directory(tmp_path: Path) -> None:
         (["grid.objects=[no_such_object]"], "no_such_object"),
         (["grid.coms_per_object=0"], "grid.coms_per_object"),
         (["estimator.theta_T=-1"], "estimator.theta_T"),
+        (["estimator.method=bayes"], "estimator.method"),
         (["db=/proc/comexp/results.db"], "db"),
         (["backend=bullet3"], "backend"),
         (["floor=wood"], "floor"),
@@ -295,6 +297,18 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
     r = comexp(tmp_path, *args, "grid.coms_per_object=3")
     assert r.returncode == 0 and "all 6 episodes already stored" in r.stdout
     assert rows(db, "select count(*) from sweeps") == [(2,)]
+
+
+def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path) -> None:
+    """`estimator.method` on the command line is the episodes' estimator (and their identity):
+    the two methods on the same grid are two sets of episodes, told apart in the database."""
+    args = [*SMALL, "floor.mu=[1.0]", "grid.objects=[rect_8x5]", "db=results/m.db"]
+    for method in ("magnitude", "paper"):
+        r = comexp(tmp_path, *args, f"estimator.method={method}", **FAKE)
+        assert r.returncode == 0, r.stderr
+        assert "0 already stored" in r.stdout + r.stderr, r.stdout + r.stderr
+    got = rows(tmp_path / "results" / "m.db", "select estimator from episodes order by id")
+    assert [json.loads(e)["method"] for (e,) in got] == ["magnitude", "paper"]
 
 
 def test_aniso_multirun_example(tmp_path: Path) -> None:

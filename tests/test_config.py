@@ -77,6 +77,17 @@ def test_every_estimator_setting_is_configurable() -> None:
     assert len(names) == len(dataclasses.fields(EstimatorSettings))
 
 
+def test_estimator_method_is_a_knob() -> None:
+    assert prepare_job(_compose()).estimator.method == "paper"
+    job = prepare_job(
+        _compose(
+            "estimator.method=magnitude", "estimator.mag_noise=0.5", "estimator.mag_rel_noise=0"
+        )
+    )
+    assert (job.estimator.method, job.estimator.mag_noise_deg) == ("magnitude", 0.5)
+    assert job.estimator.mag_rel_noise == 0.0
+
+
 def test_wrong_types_are_rejected_while_composing() -> None:
     for bad in ("speed=abc", "grid.coms_per_object=1.5", "workers=two", "nope=1"):
         with pytest.raises(ConfigCompositionException):
@@ -106,6 +117,9 @@ def test_wrong_types_are_rejected_while_composing() -> None:
         (["estimator.n_push=0"], "estimator.n_push"),
         (["estimator.w=[1]"], "estimator.w"),
         (["estimator.rotation_source=magic"], "estimator.rotation_source"),
+        (["estimator.method=bayes"], "estimator.method"),
+        (["estimator.mag_noise=0"], "estimator.mag_noise"),
+        (["estimator.mag_rel_noise=-1"], "estimator.mag_rel_noise"),
         (["floor=aniso", "floor.mu=[1]"], "floor.mu"),
         (["floor=aniso", "floor.orientations=[zz]"], "floor.orientations"),
         (["floor.orientations=[xy]"], "floor.orientations"),

@@ -15,11 +15,17 @@ from comexp.method.estimator import (
     choose_contact,
     cross2,
     estimate_com,
+    floor_force_direction,
+    lever_arms,
     line_cuts_region,
+    magnitude_misfit,
+    magnitude_posterior,
     pca,
     reachable_contacts,
+    refine_grid,
     score_contacts,
     update_region,
+    weighted_pca,
 )
 
 PX = 0.0025  # metres per pixel of the synthetic grids
@@ -205,6 +211,15 @@ def test_estimate_com_api_for_observed_pushes():
 
 
 def test_settings_are_validated():
+    with pytest.raises(ValueError, match="method"):
+        EstimatorSettings(method="bayes")
+    with pytest.raises(ValueError, match="mag_noise_deg"):
+        EstimatorSettings(mag_noise_deg=0.0)
+    with pytest.raises(ValueError, match="mag_noise_deg"):
+        EstimatorSettings(mag_noise_deg=math.nan)
+    with pytest.raises(ValueError, match="mag_rel_noise"):
+        EstimatorSettings(mag_rel_noise=-0.1)
+    assert EstimatorSettings().method == "paper"
     with pytest.raises(ValueError):
         EstimatorSettings(rotation_source="magic")
     with pytest.raises(ValueError):
@@ -215,3 +230,213 @@ def test_settings_are_validated():
     for bad in (dict(theta_T_deg=float("nan")), dict(w=(1.0, float("inf"))), dict(n_push=0)):
         with pytest.raises(ValueError):
             EstimatorSettings(**bad)
+
+
+# --- method="magnitude" (beyond the paper) ----------------------------------------------------
+
+MAG = EstimatorSettings(method="magnitude")
+PENTAGON = np.array([(-0.05, -0.02), (0.03, -0.035), (0.055, 0.01), (0.01, 0.04), (-0.045, 0.025)])
+
+
+def _pushes_through(region: np.ndarray, poly: np.ndarray, n: int, rng: np.random.Generator):
+    """n contacts of the outline whose push lines cut the region (random, reproducible)."""
+    P, N = edge_contacts(poly, step=0.003)
+    ok = np.flatnonzero(line_cuts_region(region, P, N))
+    j = rng.choice(ok, size=n, replace=False)
+    return P[j], N[j]
+
+
+def test_lever_arms_have_the_sign_of_the_rotation():
+    G = np.array([[0.0, 0.0]])
+    # push north (+y) east of G: the moment (P - G) x N is +x * +y > 0, CCW
+    np.testing.assert_allclose(lever_arms(G, [[0.01, -0.03]], [[0.0, 1.0]]), [[0.01]])
+    np.testing.assert_allclose(lever_arms(G, [[-0.02, -0.03]], [[0.0, 1.0]]), [[-0.02]])
+    rot = _ideal_rotation(G[0], (0.01, -0.03), (0.0, 1.0))
+    assert rot > 0  # and the stand-in physics of the paper tests agrees
+
+
+@pytest.mark.parametrize("gain_deg_per_cm", [3.0, 40.0])
+def test_magnitude_recovers_the_com_exactly_with_the_linear_model(gain_deg_per_cm):
+    """rot = k (P - G) x N exactly: G has zero misfit and is the misfit's unique minimum among
+    the region's points (default noise settings), and told that the data are exact (tiny noise
+    floor, no relative error) the posterior mean lands on it, for a weak and a strong gain."""
+    exact = EstimatorSettings(method="magnitude", mag_noise_deg=0.01, mag_rel_noise=0.0)
+    region = grid_in(PENTAGON)
+    rng = np.random.default_rng(1)
+    for i in rng.choice(len(region), size=5, replace=False):
+        G = region[i]
+        P, N = _pushes_through(region, PENTAGON, 5, rng)
+        rot = gain_deg_per_cm * 100.0 * lever_arms(G, P, N)[0]
+        chi = magnitude_misfit(region, P, N, rot, MAG, region)
+        assert chi[i] == pytest.approx(0.0, abs=1e-18)
+        assert np.argmin(chi) == i and np.sort(chi)[1] > 1e-3
+        pushes = [ObservedPush(tuple(p), tuple(n), r) for p, n, r in zip(P, N, rot, strict=True)]
+        final, est = estimate_com(region, pushes, PX, exact)
+        paper_final, _ = estimate_com(region, pushes, PX)
+        np.testing.assert_array_equal(final, paper_final)  # same sign region as the paper
+        assert np.linalg.norm(est - G) < 1e-6
+
+
+def _saturating_rotation(G, P, N, rng, sat_deg=60.0, lever_m=0.01, noise_deg=0.3):
+    """A monotone, non-linear law (tanh: ~linear below the lever, saturating at sat_deg above
+    it) with 5% gain scatter between pushes and additive noise."""
+    lev = float(cross2(np.subtract(P, G), np.asarray(N)))
+    scale = 1.0 + 0.05 * rng.standard_normal()
+    return float(sat_deg * scale * math.tanh(lev / lever_m) + noise_deg * rng.standard_normal())
+
+
+def _run(settings, poly, G, seed):
+    rng = np.random.default_rng(seed)
+    P, N = edge_contacts(poly, step=0.003)
+    est = ComEstimator(grid_in(poly), P, N, PX, settings, outline_m=poly, pusher_radius_m=0.005)
+    for _ in range(settings.n_push):
+        push = est.next_push()
+        assert push is not None
+        est.observe(*push, _saturating_rotation(G, *push, rng))
+        assert np.min(np.linalg.norm(est.region - G, axis=1)) < 1.5 * PX  # G never cut off
+    return float(np.linalg.norm(est.estimate_m - G))
+
+
+@pytest.mark.parametrize("poly", [rect(0.05, 0.03), PENTAGON], ids=["rect", "pentagon"])
+def test_magnitude_is_robust_to_a_saturating_law_and_noise(poly):
+    """Episodes driven by ComEstimator (Alg. 1 on the posterior) under a tanh law with noise:
+    the magnitude estimate is several times closer than the paper's on the same CoMs."""
+    rng = np.random.default_rng(7)
+    inner = shapely.Polygon(poly).buffer(-0.01)
+    Gs = []
+    while len(Gs) < 12:
+        g = rng.uniform(poly.min(axis=0), poly.max(axis=0))
+        if inner.contains(shapely.Point(g)):
+            Gs.append(g)
+    paper = [_run(DEFAULT, poly, G, s) for s, G in enumerate(Gs)]
+    mag = [_run(MAG, poly, G, s) for s, G in enumerate(Gs)]
+    assert np.mean(mag) < 0.4 * np.mean(paper)
+    assert np.mean(mag) < 0.002 and max(mag) < 0.004
+
+
+def test_magnitude_estimate_stays_in_the_sign_region():
+    """The posterior lives on the sign-consistent points only, whatever the magnitudes say
+    (here a huge and a tiny turn that fit no single gain well)."""
+    region = grid_in(rect(0.05, 0.03))
+    # CCW for a north push at x = 0: G is west (x < 0); CW for an east push at y = 0: G is
+    # south (y < 0); CCW for a north push at x = 0.03: west of it (no new cut).
+    pushes = [
+        ObservedPush((0.0, -0.03), (0.0, 1.0), 2.0),
+        ObservedPush((-0.05, 0.0), (1.0, 0.0), -60.0),
+        ObservedPush((0.03, -0.03), (0.0, 1.0), 40.0),
+    ]
+    final, est = estimate_com(region, pushes, PX, MAG)
+    assert (final[:, 0] < 0).all() and (final[:, 1] < 0).all()
+    assert est[0] < 0 and est[1] < 0  # the signs' half-planes hold for the estimate itself
+    hull = shapely.MultiPoint(final.tolist()).convex_hull  # within the region's cells
+    assert hull.buffer(PX / 2 * math.sqrt(2)).contains(shapely.Point(est))
+    P = np.array([p.contact_m for p in pushes])
+    N = np.array([p.direction for p in pushes])
+    rot = np.array([p.rotation_deg for p in pushes])
+    w = magnitude_posterior(final, P, N, rot, MAG, region)
+    assert w.shape == (len(final),) and w.sum() == pytest.approx(1.0) and (w >= 0).all()
+
+
+def test_magnitude_without_pushes_is_the_centroid():
+    region = grid_in(PENTAGON)
+    final, est = estimate_com(region, [], PX, MAG)
+    np.testing.assert_array_equal(final, region)
+    np.testing.assert_allclose(est, region.mean(axis=0))
+
+
+def test_refined_grid_tiles_the_cells():
+    region = grid_in(rect(0.01, 0.01))
+    fine = refine_grid(region, PX, 3)
+    assert len(fine) == 9 * len(region)
+    np.testing.assert_allclose(fine.mean(axis=0), region.mean(axis=0), atol=1e-12)
+    d = np.linalg.norm(fine[:9] - region[0], axis=1)
+    assert d.max() == pytest.approx(math.hypot(PX / 3, PX / 3))
+
+
+def test_weighted_pca_follows_the_weights():
+    pts = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    c, V, lam = weighted_pca(pts, np.array([1.0, 1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(c, [0.5, 0.0])
+    assert abs(V[0, 0]) == pytest.approx(1.0) and lam[1] == pytest.approx(0.0)
+    _, _, lam = weighted_pca(pts, np.array([1.0, 0, 0, 0]), floor_m=0.3)
+    np.testing.assert_allclose(lam, [0.0075, 0.0075])  # a grid cell's own variance
+
+
+def test_magnitude_pushes_cross_the_line_a_null_turn_found():
+    """After a push whose line passes through the CoM (no turn), the posterior is a strip
+    along that line; Algorithm 1 on the posterior then pushes across it, where the paper's
+    region centroid would have it push the same line again."""
+    poly = rect(0.05, 0.03)
+    G = np.array([0.0, 0.004])
+    P, N = edge_contacts(poly, step=0.003)
+    est = ComEstimator(grid_in(poly), P, N, PX, MAG, outline_m=poly, pusher_radius_m=0.005)
+    for p, n in (((0.001, -0.03), (0.0, 1.0)), ((-0.05, -0.01), (1.0, 0.0))):
+        est.observe(p, n, _ideal_rotation(G, p, n, 20.0))
+    est.observe((0.0, 0.03), (0.0, -1.0), 0.0)  # the line x = 0: through G
+    p, n = est.next_push()
+    assert abs(n[1]) < 0.5, "the next push crosses the vertical line"
+
+
+def test_paper_path_is_unchanged():
+    """`method="paper"` (the default) chooses the same pushes and gives the same estimate, to
+    the last bit, as before `method` existed: values recorded with commit b32f6b0's
+    estimator on this scenario."""
+    G = np.array([0.0113, -0.0042])
+    P, N = edge_contacts(PENTAGON, step=0.003)
+    est = ComEstimator(
+        grid_in(PENTAGON), P, N, PX, DEFAULT, outline_m=PENTAGON, pusher_radius_m=0.005
+    )
+    got = []
+    for _ in range(5):
+        p, n = est.next_push()
+        rot = 60.0 * np.tanh(float(cross2(p - G, n)) / 0.01)
+        got.append((p.tolist(), est.observe(p, n, rot), est.region_px))
+    assert got == [
+        ([-0.005770751587955515, -0.028292984077258346], "cw", 441),
+        ([-0.04698776746934724, 0.007110092775874863], "cw", 216),
+        ([0.004211417072573607, 0.03842129556524735], "cw", 112),
+        ([-0.04897553493869448, -0.010779814448250283], "ccw", 54),
+        ([0.03003849116986469, 0.02664100588675687], "ccw", 29),
+    ]
+    assert est.estimate_m.tolist() == [0.011508620689655216, -0.011077586206896533]
+    assert est.posterior is None
+
+
+def test_floor_force_direction():
+    """Isotropic floor: the push direction itself. Anisotropic: turned towards the floor's
+    friction direction for motion along the push (half way), within the pusher's cone, and
+    not at all along the floor's axes."""
+    n = np.array([math.sqrt(0.5), math.sqrt(0.5)])
+    np.testing.assert_array_equal(floor_force_direction(n, 0.3, 0.5, 0.5, 1.0), n)
+    for yaw in (0.0, math.pi / 2):  # pushing along a floor axis: no turn
+        d = floor_force_direction([1.0, 0.0], yaw, 0.1, 1.0, 1.0)
+        np.testing.assert_allclose(d, [1.0, 0.0], atol=1e-12)
+    # 45 deg on mu_x = 0.1, mu_y = 1: friction along ~y, phi ~ +44 deg, half of it applied
+    d = floor_force_direction(n, 0.0, 0.1, 1.0, 1.0)
+    phi = math.degrees(math.atan2(d[1], d[0])) - 45.0
+    assert phi == pytest.approx(0.5 * (math.degrees(math.atan(100.0)) - 45.0))
+    # the pusher's friction cone bounds it: mu_p = 0.1 -> at most atan(0.1)
+    d = floor_force_direction(n, 0.0, 0.1, 1.0, 0.1)
+    assert math.degrees(math.atan2(d[1], d[0])) - 45.0 == pytest.approx(
+        math.degrees(math.atan(0.1))
+    )
+    # the object's yaw counts: an object-frame north push at yaw -90 deg runs along world +x
+    d = floor_force_direction([0.0, 1.0], -math.pi / 2, 0.1, 1.0, 1.0)  # world +x: an axis
+    np.testing.assert_allclose(d, [0.0, 1.0], atol=1e-12)
+    assert np.linalg.norm(floor_force_direction(n, 1.0, 1.0, 0.1, 0.5)) == pytest.approx(1.0)
+
+
+def test_magnitude_uses_the_line_direction_and_the_paper_ignores_it():
+    """A push whose force line is turned (anisotropic floor) splits the region along that line
+    for `magnitude`; the paper's Algorithm 2 keeps using the push direction."""
+    region = grid_in(rect(0.05, 0.03))
+    turned = (math.sin(0.3), math.cos(0.3))  # north push, line turned 0.3 rad clockwise
+    push = ObservedPush((0.0, -0.03), (0.0, 1.0), 5.0, line_direction=turned)
+    paper_final, _ = estimate_com(region, [push], PX)
+    np.testing.assert_array_equal(paper_final, region[region[:, 0] < 0])
+    mag_final, _ = estimate_com(region, [push], PX, MAG)
+    side = cross2(np.array(turned), mag_final - np.array([0.0, -0.03]))
+    assert (side > 0).all() and len(mag_final) != len(paper_final)
+    est = ComEstimator(region, *edge_contacts(rect(0.05, 0.03)), PX, MAG)
+    est.observe(np.array([0.0, -0.03]), np.array([0.0, 1.0]), 5.0, np.array(turned))
+    np.testing.assert_array_equal(est.region, mag_final)

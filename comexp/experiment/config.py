@@ -134,6 +134,10 @@ class EstimatorConfig:
     band_signed: bool = _EST.band_signed
     contact_spacing: float = _EST.contact_spacing_px  # px
     check_reachability: bool = _EST.check_reachability
+    method: str = _EST.method  # paper | magnitude
+    mag_noise: float = _EST.mag_noise_deg  # deg
+    mag_rel_noise: float = _EST.mag_rel_noise
+    mag_floor_model: bool = _EST.mag_floor_model
 
 
 # config knob (`estimator.<knob>`) -> EstimatorSettings field: the one place the two names meet
@@ -149,6 +153,10 @@ SETTINGS_FIELDS: dict[str, str] = {
     "band_signed": "band_signed",
     "contact_spacing": "contact_spacing_px",
     "check_reachability": "check_reachability",
+    "method": "method",
+    "mag_noise": "mag_noise_deg",
+    "mag_rel_noise": "mag_rel_noise",
+    "mag_floor_model": "mag_floor_model",
 }
 _CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 

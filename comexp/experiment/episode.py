@@ -16,7 +16,7 @@ import numpy as np
 
 from comexp.experiment.objects import object_model
 from comexp.experiment.simulator import Frame, Simulator, contact_push
-from comexp.method.estimator import ComEstimator, EstimatorSettings
+from comexp.method.estimator import ComEstimator, EstimatorSettings, floor_force_direction
 from comexp.method.perception import (
     PerceptionError,
     PoseTracker,
@@ -271,7 +271,13 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
             else:  # oracle: carry the frame with the true rigid motion
                 new_frame = _compose(true_now, _relative(true_prev, frame))
                 rot = rot_true
-            decision = est.observe(P, N, rot)
+            line = None
+            if settings.method == "magnitude" and settings.mag_floor_model:
+                # the robot knows its floor and pusher; the yaw is the estimator's own (vision)
+                line = floor_force_direction(
+                    N, frame.yaw_rad, spec.mu_floor_x, spec.mu_floor_y, spec.mu_pusher
+                )
+            decision = est.observe(P, N, rot, line)
             frame, true_prev = new_frame, true_now
             c_obj = frame_in_obj.to_world(P)
             d_obj = _rotate(N, frame_in_obj.yaw_rad)

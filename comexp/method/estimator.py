@@ -19,10 +19,17 @@ Use with a real robot (no simulator)::
     region, estimate = estimate_com(region, pushes, pixel_m=0.0027)
 
 or drive Algorithm 1 step by step with `ComEstimator` (it proposes the next contact).
+
+`EstimatorSettings.method="magnitude"` (ours, beyond the paper; docs/method.md, "Beyond the
+paper") also uses how much the object turns: within the region the signs allow, the CoM is the
+point whose lever arms (P_i - G) x N_i best explain the measured rotations with one per-episode
+gain, rot_i ~ k f((P_i - G) x N_i) (f linear, or saturating as the impact's l / (rho^2 + l^2)).
+Same API: `estimate_com(..., settings=EstimatorSettings(method="magnitude"))`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -31,6 +38,17 @@ import shapely
 
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
+METHODS = ("paper", "magnitude")
+# Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
+# squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
+# (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
+# rho^2, is unknown to the robot (the study scales it by 1 or 10). The form is the impact's
+# omega = v l / (rho^2 + l^2) (docs/method.md); the set was not tuned beyond a few trials.
+SATURATION_BETAS = (1.0, 3.0, 10.0, math.inf)
+# The magnitude posterior is sharper than a pixel when a push line passes through the CoM (a
+# turn of 0.5 deg against a gain of ~20 deg/cm places the line within 0.3 mm), so it is
+# evaluated on a grid this many times finer than the region's.
+SUBPIXEL = 3
 
 
 @dataclass(frozen=True)
@@ -51,6 +69,14 @@ class EstimatorSettings:
     # --- contact candidates ----------------------------------------------------------------
     contact_spacing_px: float = 2.0  # arc length between sampled contour points
     check_reachability: bool = True  # drop contacts the pusher cannot reach along -N
+    # --- beyond the paper (docs/method.md, "Beyond the paper") -------------------------------
+    method: str = "paper"  # paper (Algorithms 1-2) | magnitude (also fits how much it turns)
+    mag_noise_deg: float = 1.0  # magnitude: rotation noise floor sigma0 (vision, unmodelled)
+    # magnitude: relative model error alpha of a turn, sigma^2 = sigma0^2 + (alpha rot)^2
+    mag_rel_noise: float = 0.2
+    # magnitude in episodes: the known floor and pusher friction turn each push's line of action
+    # (`floor_force_direction`); False = along the push direction, as the paper
+    mag_floor_model: bool = True
 
     def __post_init__(self) -> None:
         if self.rotation_source not in ROTATION_SOURCES:
@@ -70,6 +96,12 @@ class EstimatorSettings:
             raise ValueError(f"n_push must be >= 1, got {self.n_push}")
         if self.contact_spacing_px <= 0:
             raise ValueError("contact_spacing_px must be > 0")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if not (math.isfinite(self.mag_noise_deg) and self.mag_noise_deg > 0):
+            raise ValueError(f"mag_noise_deg must be > 0, got {self.mag_noise_deg!r}")
+        if not (math.isfinite(self.mag_rel_noise) and self.mag_rel_noise >= 0):
+            raise ValueError(f"mag_rel_noise must be >= 0, got {self.mag_rel_noise!r}")
 
 
 def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -85,6 +117,22 @@ def pca(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return c, np.eye(2), np.zeros(2)
     cov = np.cov((pts - c).T, bias=True)
     lam, vec = np.linalg.eigh(cov)  # ascending
+    return c, vec[:, ::-1], lam[::-1]
+
+
+def weighted_pca(
+    points: np.ndarray, weights: np.ndarray, floor_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`pca` of a weighted point set (the magnitude posterior): mean, axes, variances. A point
+    set is a grid, so `floor_m`^2 / 12 (a grid cell's own variance) is added to the covariance:
+    a posterior sharper than the grid has no main axis to speak of."""
+    pts = np.asarray(points, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    c = w @ pts
+    d = pts - c
+    cov = (d * w[:, None]).T @ d + np.eye(2) * floor_m**2 / 12.0
+    lam, vec = np.linalg.eigh(cov)
     return c, vec[:, ::-1], lam[::-1]
 
 
@@ -137,6 +185,7 @@ def score_contacts(
     N: np.ndarray,
     settings: EstimatorSettings,
     pixel_m: float,
+    centre_axes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Eq. (1): s = w1 d + w2 cos, lower is better (Alg. 1 lines 3, 5, 6).
 
@@ -144,8 +193,9 @@ def score_contacts(
     splits the region near its middle); cos = N . V1 is small when the push line crosses the
     region's long axis (so the region does not stay prolate). V1's sign is arbitrary, so the
     physical reading is |N . V1|; an unsigned d likewise (a line far on either side is as bad).
+    `centre_axes` = (c, V) replaces the region's own (`magnitude`: the posterior's).
     """
-    c, V, _ = pca(region)
+    c, V = centre_axes if centre_axes is not None else pca(region)[:2]
     v1 = V[:, 0]
     cp = c[None, :] - P
     if settings.d_metric == "sine":
@@ -168,11 +218,12 @@ def choose_contact(
     settings: EstimatorSettings,
     pixel_m: float,
     allowed: np.ndarray | None = None,
+    centre_axes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> int | None:
     """Index of the best valid contact (Alg. 1 lines 3-7), None if no push line cuts the region.
 
     `allowed` masks out contacts that are invalid for reasons other than the region (e.g.
-    unreachable, see `reachable_contacts`).
+    unreachable, see `reachable_contacts`); `centre_axes` see `score_contacts`.
     """
     if len(P) == 0 or len(region) == 0:
         return None
@@ -183,7 +234,7 @@ def choose_contact(
         valid[allowed] = line_cuts_region(region, P[allowed], N[allowed])
     if not valid.any():
         return None
-    s = score_contacts(region, P, N, settings, pixel_m)
+    s = score_contacts(region, P, N, settings, pixel_m, centre_axes)
     s = np.where(valid, s, np.inf)
     return int(np.argmin(s))
 
@@ -223,6 +274,139 @@ def update_region(
     return region[keep], decision
 
 
+def lever_arms(candidates: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """(P_j - G_i) x N_j for every candidate CoM G_i and push j: (n, m), metres; the rotation
+    has its sign (CCW positive)."""
+    G = np.asarray(candidates, dtype=float).reshape(-1, 2)
+    P = np.asarray(P, dtype=float).reshape(-1, 2)
+    N = np.asarray(N, dtype=float).reshape(-1, 2)
+    return (P[None, :, 0] - G[:, 0, None]) * N[None, :, 1] - (P[None, :, 1] - G[:, 1, None]) * N[
+        None, :, 0
+    ]
+
+
+def magnitude_misfit(
+    candidates: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    rotation_deg: np.ndarray,
+    settings: EstimatorSettings,
+    footprint_m: np.ndarray,
+) -> np.ndarray:
+    """How badly each candidate CoM explains the measured rotations: chi^2, (n,).
+
+    Model: rot_j = k f(l_j) with l_j = (P_j - G) x N_j, one gain k >= 0 per episode (it holds
+    the speed, friction and Izz, which are fixed within an episode), fitted in closed form per
+    candidate; f(l) = l / (1 + l^2 / (beta rho0^2(G))) with beta profiled over
+    `SATURATION_BETAS` (inf: linear), rho0^2(G) the squared radius of gyration of `footprint_m`
+    (the initial region, uniform density) about G. Residuals are weighted by
+    1 / (sigma0^2 + (alpha rot_j)^2): a large turn says less about its exact lever than a small
+    one (saturation, the direction's own gain), and a turn near zero pins the line near G.
+    """
+    G = np.asarray(candidates, dtype=float).reshape(-1, 2)
+    rot = np.asarray(rotation_deg, dtype=float).reshape(-1)
+    if len(rot) == 0 or len(G) == 0:
+        return np.zeros(len(G))
+    foot = np.asarray(footprint_m, dtype=float).reshape(-1, 2)
+    c = foot.mean(axis=0)
+    rho2 = ((foot - c) ** 2).sum(axis=1).mean() + ((G - c) ** 2).sum(axis=1)  # (n,)
+    lev = lever_arms(G, P, N)
+    w = 1.0 / (settings.mag_noise_deg**2 + (settings.mag_rel_noise * rot) ** 2)
+    best = np.full(len(G), np.inf)
+    for beta in SATURATION_BETAS:
+        f = lev if math.isinf(beta) else lev / (1.0 + lev * lev / (beta * rho2[:, None]))
+        k = (w * rot * f).sum(axis=1) / np.maximum((w * f * f).sum(axis=1), 1e-300)
+        k = np.maximum(k, 0.0)  # the object turns with the moment, never against it
+        best = np.minimum(best, (w * (rot - k[:, None] * f) ** 2).sum(axis=1))
+    return best
+
+
+def magnitude_posterior(
+    region: np.ndarray,
+    P: np.ndarray,
+    N: np.ndarray,
+    rotation_deg: np.ndarray,
+    settings: EstimatorSettings,
+    footprint_m: np.ndarray,
+) -> np.ndarray:
+    """Weights (n,), summing to 1, of the region's points: exp(-chi^2 / 2) of
+    `magnitude_misfit`, i.e. a likelihood with a uniform prior over the sign-consistent
+    region."""
+    chi = magnitude_misfit(region, P, N, rotation_deg, settings, footprint_m)
+    p = np.exp(-(chi - chi.min()) / 2.0) if len(chi) else chi
+    return p / p.sum() if len(p) else p
+
+
+def refine_grid(region: np.ndarray, pixel_m: float, n: int = SUBPIXEL) -> np.ndarray:
+    """Every point of a regular grid of spacing `pixel_m` replaced by the n x n points of
+    spacing pixel_m / n that tile its cell: the same area, n^2 times the points."""
+    o = (np.arange(n) - (n - 1) / 2.0) * pixel_m / n
+    off = np.stack(np.meshgrid(o, o), axis=-1).reshape(-1, 2)
+    return (np.asarray(region, dtype=float)[:, None, :] + off[None]).reshape(-1, 2)
+
+
+class MagnitudePosterior:
+    """The magnitude method's state: the sign-consistent region on the fine grid (the same
+    Algorithm 2 updates as the region) and the observed pushes; weights and estimate on it."""
+
+    def __init__(self, region_m: np.ndarray, pixel_m: float, settings: EstimatorSettings):
+        self.settings = settings
+        self.pixel_m = float(pixel_m)
+        self.footprint = np.asarray(region_m, dtype=float)
+        self.points = refine_grid(self.footprint, self.pixel_m)
+        self.weights = np.full(len(self.points), 1.0 / max(len(self.points), 1))
+        self._pushes: list[tuple[np.ndarray, np.ndarray, float]] = []
+
+    def observe(self, contact_m: Sequence[float], direction: Sequence[float], rot_deg: float):
+        P = np.asarray(contact_m, dtype=float)
+        N = np.asarray(direction, dtype=float)
+        N = N / np.linalg.norm(N)
+        self.points, _ = update_region(self.points, P, N, rot_deg, self.settings, self.pixel_m)
+        self._pushes.append((P, N, float(rot_deg)))
+        Ps, Ns, rot = (np.array(x) for x in zip(*self._pushes, strict=True))
+        self.weights = magnitude_posterior(self.points, Ps, Ns, rot, self.settings, self.footprint)
+
+    @property
+    def estimate_m(self) -> np.ndarray:
+        return self.weights @ self.points
+
+    def centre_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and principal axes, for Algorithm 1's score."""
+        c, V, _ = weighted_pca(self.points, self.weights, self.pixel_m / SUBPIXEL)
+        return c, V
+
+
+def floor_force_direction(
+    direction: Sequence[float],
+    yaw_rad: float,
+    mu_x: float,
+    mu_y: float,
+    mu_pusher: float,
+    share: float = 0.5,
+) -> np.ndarray:
+    """The line of action to expect for a push along `direction` (object frame, unit) on a
+    floor with friction mu_x, mu_y along its world axes, the object at world yaw `yaw_rad`.
+
+    Why: on an anisotropic floor the friction of an object sliding along u is along
+    -(mu_x^2 u_x, mu_y^2 u_y), not -u; the force that balances it is turned away from the push
+    direction by the angle phi between u and that vector, as far as the pusher's friction cone
+    (atan mu_pusher) allows, and the object turns about the line of that force, not of the
+    push. `share` of phi (0.5, measured on planar pushes: docs/method.md, "Beyond the paper") is
+    applied, since the object does not only translate. Isotropic floors: `direction` itself.
+    """
+    n = np.asarray(direction, dtype=float)
+    n = n / np.linalg.norm(n)
+    if mu_x == mu_y:
+        return n
+    th = math.atan2(n[1], n[0]) + yaw_rad  # world direction of the push
+    th_f = math.atan2(mu_y**2 * math.sin(th), mu_x**2 * math.cos(th))
+    phi = (th_f - th + math.pi) % (2 * math.pi) - math.pi
+    cone = math.atan(max(mu_pusher, 0.0))
+    phi = min(max(share * phi, -cone), cone)
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([c * n[0] - s * n[1], s * n[0] + c * n[1]])
+
+
 @dataclass(frozen=True)
 class ObservedPush:
     """One push as a robot sees it, in the object frame: contact point (m), unit push direction
@@ -231,6 +415,10 @@ class ObservedPush:
     contact_m: tuple[float, float]
     direction: tuple[float, float]
     rotation_deg: float
+    # `magnitude` only: the line of action the floor model expects for the push's force, if it
+    # differs from `direction` (anisotropic floors, see `floor_force_direction`); None = along
+    # `direction`. The paper's method ignores it.
+    line_direction: tuple[float, float] | None = None
 
 
 def estimate_com(
@@ -239,17 +427,28 @@ def estimate_com(
     pixel_m: float,
     settings: EstimatorSettings | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Apply Algorithm 2 for each observed push; returns (final region, estimate = its centroid).
+    """Apply Algorithm 2 for each observed push; returns (final region, estimate).
 
     `region_m` is the initial CoM region: points inside the object's convex hull on a regular
     grid of spacing `pixel_m` (the pixel size that turns C_bw from pixels into metres).
+    The estimate is the final region's centroid (`method="paper"`), or, with
+    `method="magnitude"`, the mean of `magnitude_posterior` of all the pushes over the final
+    region (sign-consistent; on a grid `SUBPIXEL` times finer).
     """
     settings = settings or EstimatorSettings()
     region = np.asarray(region_m, dtype=float)
+    post = MagnitudePosterior(region, pixel_m, settings) if settings.method == "magnitude" else None
     for push in pushes:
+        line = push.direction
+        if post is not None and push.line_direction is not None:
+            line = push.line_direction
         region, _ = update_region(
-            region, push.contact_m, push.direction, push.rotation_deg, settings, pixel_m
+            region, push.contact_m, line, push.rotation_deg, settings, pixel_m
         )
+        if post is not None:
+            post.observe(push.contact_m, line, push.rotation_deg)
+    if post is not None:
+        return region, post.estimate_m
     return region, region.mean(axis=0)
 
 
@@ -258,6 +457,10 @@ class ComEstimator:
 
     Candidates are the sampled contour points with inward normals (object frame); with an
     outline and a pusher radius, contacts the pusher cannot reach are dropped once up front.
+    With `method="magnitude"` the estimate is the posterior mean (see `estimate_com`), and
+    Algorithm 1 scores push lines against the posterior's mean and main axis instead of the
+    region's (validity is unchanged: the line cuts the region), so pushes aim where the CoM
+    probably is, across the direction it is least certain in.
     """
 
     def __init__(
@@ -272,10 +475,15 @@ class ComEstimator:
     ) -> None:
         self.settings = settings or EstimatorSettings()
         self.region = np.asarray(region_m, dtype=float)
+        self.pixel_m = float(pixel_m)
+        self.posterior = (
+            MagnitudePosterior(self.region, self.pixel_m, self.settings)
+            if self.settings.method == "magnitude"
+            else None
+        )
         self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
         n = np.asarray(normals, dtype=float).reshape(-1, 2)
         self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-        self.pixel_m = float(pixel_m)
         if self.settings.check_reachability and outline_m is not None and pusher_radius_m:
             self.allowed = reachable_contacts(
                 outline_m, self.contacts, self.normals, pusher_radius_m
@@ -285,6 +493,8 @@ class ComEstimator:
 
     @property
     def estimate_m(self) -> np.ndarray:
+        if self.posterior is not None:
+            return self.posterior.estimate_m
         return self.region.mean(axis=0)
 
     @property
@@ -294,16 +504,34 @@ class ComEstimator:
     def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(contact, direction) of the best valid push, or None when no push line cuts the
         region (or none is reachable)."""
+        centre_axes = self.posterior.centre_axes() if self.posterior is not None else None
         j = choose_contact(
-            self.region, self.contacts, self.normals, self.settings, self.pixel_m, self.allowed
+            self.region,
+            self.contacts,
+            self.normals,
+            self.settings,
+            self.pixel_m,
+            self.allowed,
+            centre_axes,
         )
         if j is None:
             return None
         return self.contacts[j].copy(), self.normals[j].copy()
 
-    def observe(self, contact_m: np.ndarray, direction: np.ndarray, rotation_deg: float) -> str:
-        """Algorithm 2 with the measured rotation; returns the decision (ccw, cw, band)."""
+    def observe(
+        self,
+        contact_m: np.ndarray,
+        direction: np.ndarray,
+        rotation_deg: float,
+        line_direction: np.ndarray | None = None,
+    ) -> str:
+        """Algorithm 2 with the measured rotation; returns the decision (ccw, cw, band).
+        `line_direction`: see `ObservedPush` (`magnitude` only; the paper ignores it)."""
+        if self.posterior is not None and line_direction is not None:
+            direction = line_direction
         self.region, decision = update_region(
             self.region, contact_m, direction, rotation_deg, self.settings, self.pixel_m
         )
+        if self.posterior is not None:
+            self.posterior.observe(contact_m, direction, rotation_deg)
         return decision
