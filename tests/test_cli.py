@@ -339,7 +339,9 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env=_env(FAKE_RUN_SLEEP_S="0.4", **FAKE),
+        # the objects from "p" on take 30 s: the run is interrupted with work left however slowly
+        # a loaded machine runs the rest (it failed when all 20 were stored at once, 2 s flushes)
+        env=_env(FAKE_RUN_SLEEP_S="0.1", FAKE_RUN_HOLD_OBJECTS_FROM="p", **FAKE),
     )
     db = tmp_path / "results" / "i.db"
     deadline = time.monotonic() + 120
