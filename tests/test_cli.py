@@ -339,9 +339,10 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        # the objects from "p" on take 30 s: the run is interrupted with work left however slowly
-        # a loaded machine runs the rest (it failed when all 20 were stored at once, 2 s flushes)
-        env=_env(FAKE_RUN_SLEEP_S="0.1", FAKE_RUN_HOLD_OBJECTS_FROM="p", **FAKE),
+        # 1 s per episode (a sleep: the load does not stretch it): ~10 s of work on 2 workers,
+        # stored in 2 s flushes, so Ctrl-C after the first 4 leaves work (at 0.4 s all 20 were
+        # once stored in one flush before the test looked, and the run ended with exit 0)
+        env=_env(FAKE_RUN_SLEEP_S="1.0", **FAKE),
     )
     db = tmp_path / "results" / "i.db"
     deadline = time.monotonic() + 120

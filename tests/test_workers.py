@@ -19,7 +19,6 @@ TESTS_DIR = str(Path(__file__).resolve().parent)
 RUNNER = "test_workers:fake_run"
 FACTORY = "test_workers:FakeSimulator"
 GATE_WAIT_S = 10.0  # only a broken run waits this long
-HOLD_S = 30.0  # a held episode (FAKE_RUN_HOLD_OBJECTS_FROM): longer than any wait to interrupt
 
 
 # --- fakes (imported by the workers) --------------------------------------------------------
@@ -50,8 +49,7 @@ def fake_run(
 ) -> EpisodeResult:
     """`object` selects the behaviour: `raise` raises, `die_once` kills the worker process
     the first time (marker file), `die_always` every time; others succeed after `sleep_s`
-    (default: $FAKE_RUN_SLEEP_S, so command-line tests can slow it down); objects named at or
-    after $FAKE_RUN_HOLD_OBJECTS_FROM take HOLD_S (a run to interrupt with work left).
+    (default: $FAKE_RUN_SLEEP_S, so command-line tests can slow it down).
 
     With `gate_file`, episodes from `com_index` `gated_from` on wait for that file (the
     driver creates it) and fail if it does not appear within GATE_WAIT_S: an order of
@@ -68,9 +66,6 @@ def fake_run(
             os._exit(1)
     if sleep_s:
         time.sleep(sleep_s)
-    held_from = os.environ.get("FAKE_RUN_HOLD_OBJECTS_FROM")
-    if held_from and spec.object >= held_from:  # command-line tests: work left to interrupt
-        time.sleep(HOLD_S)
     if gate_file is not None and spec.com_index >= gated_from:
         deadline = time.monotonic() + GATE_WAIT_S
         while not os.path.exists(gate_file):
