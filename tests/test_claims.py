@@ -103,3 +103,12 @@ def test_other_physics_is_another_study_and_means_cite_the_paper():
     assert means[0].paper_cm == pytest.approx(0.629, abs=1e-3)
     text = claims_markdown(rows)
     assert text.count("dynamic beats quasi-static") == 2 and "| planar | iso | 40 |" in text
+
+
+def test_three_friction_levels_are_said_not_silently_skipped():
+    rows = _rows(lambda *a: 1.0) + [
+        dict(r, mu_pusher=0.5) for r in _rows(lambda *a: 1.0) if r["mu_pusher"] == 1.0
+    ]
+    pusher = [c for c in study_claims(rows) if c.claim.startswith("pusher")]
+    assert len(pusher) == 1 and pusher[0].verdict == "no data"
+    assert "needs 2 friction levels, the study has 3" in pusher[0].statistic
