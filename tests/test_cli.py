@@ -339,10 +339,10 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        # 1 s per episode (a sleep: the load does not stretch it): ~10 s of work on 2 workers,
-        # stored in 2 s flushes, so Ctrl-C after the first 4 leaves work (at 0.4 s all 20 were
-        # once stored in one flush before the test looked, and the run ended with exit 0)
-        env=_env(FAKE_RUN_SLEEP_S="1.0", **FAKE),
+        env=_env(FAKE_RUN_SLEEP_S="0.4", **FAKE),
+        # a suite started in the background (`nohup make test &`) inherits SIGINT ignored, and
+        # so would comexp: it then ran to the end and exited 0 (seen in a .ci/run so started)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     db = tmp_path / "results" / "i.db"
     deadline = time.monotonic() + 120
