@@ -260,7 +260,7 @@ def _through_com_pushes(obj: ObjectDef, com, pusher_r_cm: float):
 
 
 @pytest.mark.parametrize("backend", ["pybullet", "mujoco"])
-def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
+def test_builtin_objects_do_not_tip_under_the_harshest_push(backend):
     """Worst case of the grid: floor mu 1, pusher mu 1, 40 cm/s, the CoM as close to the edge
     as the sampler allows (a corner of the footprint shrunk by the 1 cm margin), pushed
     straight through the CoM from every reachable side. Tipping needs roughly
@@ -268,15 +268,6 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(request, backend):
     from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
     from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
 
-    if backend == "mujoco":
-        # Known, documented in docs/physics_mujoco.md ("Tipping of adversarial CoMs", "Root
-        # cause 3"): the 40 cm/s impact on the mu 1 floor lifts the object (elliptic-cone
-        # coupling), and 1 of the 71 harshest pushes (L shape) tips; from starts 0.1 um away
-        # 2 tip (arrow, rect_12x4; measured). The study's tipping rate is reported in
-        # docs/results.md. Non-strict: a fix shows up as XPASS. pybullet: worst tilt 0.07 deg
-        # (0.047 deg from starts 0.1 um away) against the 5 deg bound.
-        reason = "mujoco: impact lift tips 1 of 71 harshest pushes (known, documented)"
-        request.node.add_marker(pytest.mark.xfail(reason=reason, strict=False))
     r_cm = PusherSpec().radius_m * 100
     sim = make_simulator(backend)
     worst = (0.0, "")
