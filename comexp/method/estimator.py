@@ -280,9 +280,7 @@ def lever_arms(candidates: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarr
     G = np.asarray(candidates, dtype=float).reshape(-1, 2)
     P = np.asarray(P, dtype=float).reshape(-1, 2)
     N = np.asarray(N, dtype=float).reshape(-1, 2)
-    return (P[None, :, 0] - G[:, 0, None]) * N[None, :, 1] - (P[None, :, 1] - G[:, 1, None]) * N[
-        None, :, 0
-    ]
+    return cross2(P[None, :, :] - G[:, None, :], N[None, :, :])
 
 
 def magnitude_misfit(

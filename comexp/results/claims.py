@@ -130,10 +130,11 @@ def _bootstrap(
     objects = sorted({k[0] for k in keys})
     members = [np.array([i for i, k in enumerate(keys) if k[0] == o]) for o in objects]
 
-    def value(weights: np.ndarray) -> float:
+    def values(weights: np.ndarray) -> np.ndarray:
+        """`statistic` for each row of cluster weights (one row per replicate)."""
         n = weights @ counts
-        means = np.divide(weights @ sums, n, out=np.full(len(names), np.nan), where=n > 0)
-        return statistic(dict(zip(names, means, strict=True)))
+        means = np.divide(weights @ sums, n, out=np.full(n.shape, np.nan), where=n > 0)
+        return np.array([statistic(dict(zip(names, m, strict=True))) for m in means])
 
     # Replicate weights, all at once: draw objects, then as many CoMs of each drawn object.
     rng = np.random.default_rng(seed)
@@ -149,12 +150,9 @@ def _bootstrap(
     w = np.zeros((N_BOOTSTRAP, len(keys)))
     rep = np.broadcast_to(np.arange(N_BOOTSTRAP)[:, None, None], index.shape)
     np.add.at(w, (rep[used], index[used]), 1.0)
-    n_all = w @ counts
-    means_all = np.divide(w @ sums, n_all, out=np.full(n_all.shape, np.nan), where=n_all > 0)
-    reps = np.array([statistic(dict(zip(names, m, strict=True))) for m in means_all])
-    low, high = np.nanpercentile(reps, [2.5, 97.5])
+    low, high = np.nanpercentile(values(w), [2.5, 97.5])
     n_pairs = int(counts.sum(axis=0).min())
-    return value(np.ones(len(keys))), float(low), float(high), n_pairs
+    return float(values(np.ones((1, len(keys))))[0]), float(low), float(high), n_pairs
 
 
 def _levels(rows: Sequence[Mapping], column: str) -> tuple:
