@@ -68,6 +68,55 @@ def test_replay_equals_the_stored_episode(job_db: Path) -> None:
         package.replay(job_db, 99)
 
 
+def test_replay_runs_a_native_episode_with_native_friction(tmp_path: Path) -> None:
+    """`backend.floor_friction` is in the physics identity only as a hash: replay must find
+    it, or a `native` episode re-runs with the model's friction (the bug this catches)."""
+    from comexp.experiment.episode import EpisodeSpec, run_episode
+    from comexp.experiment.objects import load_objects
+    from comexp.experiment.simulator import make_simulator, physics_identity
+
+    obj = load_objects()["square_7"]
+    spec = EpisodeSpec.for_object(
+        obj,
+        0,
+        (0.8, -0.5),
+        backend="pybullet",
+        floor="iso",
+        mu_floor_x=0.1,
+        mu_floor_y=0.1,
+        mu_pusher=1.0,
+        speed_cm_s=40.0,
+        izz_scale=1.0,
+        camera_fps=0.0,
+        estimator=EstimatorSettings(n_push=2),
+        physics=physics_identity("pybullet", options={"floor_friction": "native"}),
+    )
+    with make_simulator("pybullet", floor_friction="native") as sim:
+        native = run_episode(spec, sim)
+    with make_simulator("pybullet") as sim:
+        model = run_episode(spec, sim)
+    assert native.status == model.status == "ok"
+    # the two frictions turn the object differently: the test can tell them apart
+    assert [p.rotation_true_deg for p in native.pushes] != [
+        p.rotation_true_deg for p in model.pushes
+    ]
+    with ResultsDB(tmp_path / "n.db") as db:
+        db.add_results(None, [native])
+        (row,) = db.episodes()
+        again = package.replay(db, row["id"])
+    assert [p.rotation_true_deg for p in again.pushes] == [
+        p.rotation_true_deg for p in native.pushes
+    ]
+    assert again.est_com_cm == native.est_com_cm
+    # physics this comexp does not have is refused, not run with other physics
+    stale = dataclasses.replace(native, spec=dataclasses.replace(spec, physics="pybullet/old"))
+    with ResultsDB(tmp_path / "s.db") as db:
+        db.add_results(None, [stale])
+        (row,) = db.episodes()
+        with pytest.raises(ValueError, match="cannot replay it"):
+            package.replay(db, row["id"])
+
+
 def test_spec_round_trips_through_the_stored_json(tmp_path: Path) -> None:
     est = EstimatorSettings(w=(2.0, 0.25), rotation_source="oracle", d_metric="distance_px")
     r = make_result(estimator=est, izz_scale=10.0)

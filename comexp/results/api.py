@@ -97,14 +97,40 @@ def stored_spec(db: DbLike, episode_id: int) -> tuple[EpisodeSpec, dict[str, Any
     return spec_from_json(row["spec"]), row
 
 
+def backend_options_for(spec: EpisodeSpec) -> dict[str, Any]:
+    """The backend options (`backend.floor_friction`, ...) that gave a stored episode its
+    physics: the ones whose `physics_identity` is the spec's. The identity keeps only a hash
+    of the options, so each choice is tried. An episode stored without a pinned physics runs
+    with the defaults."""
+    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES, physics_identity
+
+    choices = (
+        [{}]
+        if spec.backend == "planar"
+        else [{"floor_friction": c} for c in FLOOR_FRICTION_CHOICES]
+    )
+    if not spec.physics:
+        return choices[0]
+    for options in choices:
+        if physics_identity(spec.backend, options=options) == spec.physics:
+            return options
+    mine = ", ".join(physics_identity(spec.backend, options=o) for o in choices)
+    raise ValueError(
+        f"the episode ran with physics {spec.physics}; this comexp's {spec.backend} offers "
+        f"{mine}: it cannot replay it (check out the comexp and engine versions that stored it)"
+    )
+
+
 def replay(db: DbLike, episode_id: int) -> EpisodeResult:
-    """Run a stored episode again, in this process, on the backend named in its row. On the
-    machine (and package versions) that stored it the result equals the stored one."""
+    """Run a stored episode again, in this process, on the backend and with the backend
+    options (e.g. `floor_friction=native`) it ran with. On the machine (and package
+    versions) that stored it the result equals the stored one; an episode whose physics this
+    comexp no longer has is refused (ValueError) rather than run with other physics."""
     from comexp.experiment.episode import run_episode
     from comexp.experiment.simulator import make_simulator
 
     spec, row = stored_spec(db, episode_id)
     if spec.backend != row["backend"]:
         raise ValueError(f"episode {episode_id}: spec backend {spec.backend} != {row['backend']}")
-    with make_simulator(row["backend"]) as sim:
+    with make_simulator(row["backend"], **backend_options_for(spec)) as sim:
         return run_episode(spec, sim)
