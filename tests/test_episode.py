@@ -74,9 +74,12 @@ class KinematicSim(Simulator):
         cam = self.scene.camera.model()
         return render_prism_depth(cam, self.outline, self.scene.obj.height_m, self.pose)
 
-    def push(self, cmd: PushCommand, on_frame=None, frame_interval_s: float = 0.0) -> PushOutcome:
+    def push(
+        self, cmd: PushCommand, on_frame=None, frame_interval_s: float = 0.0, on_still=None
+    ) -> PushOutcome:
         """The motion takes `moving_s` at a constant rate; with `on_frame`, frames every
-        `frame_interval_s` while it moves (the protocol's frame hook)."""
+        `frame_interval_s` while it moves (the protocol's frame hook; it never rests in
+        between, so `on_still` is never called)."""
         k, self.n = self.n, self.n + 1
         if self.raise_at == k:
             raise RuntimeError("engine exploded")

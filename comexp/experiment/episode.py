@@ -245,7 +245,12 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                     tracker.track(view, f.t_s)
                     used += 1
 
-                out = sim.push(cmd, on_frame=on_frame, frame_interval_s=1.0 / spec.camera_fps)
+                out = sim.push(
+                    cmd,
+                    on_frame=on_frame,
+                    frame_interval_s=1.0 / spec.camera_fps,
+                    on_still=tracker.hold,
+                )
             else:
                 out = sim.push(cmd)
             sim_time += out.sim_time_s

@@ -191,12 +191,15 @@ class Simulator(ABC):
         cmd: PushCommand,
         on_frame: Callable[[Frame], None] | None = None,
         frame_interval_s: float = 0.0,
+        on_still: Callable[[float], None] | None = None,
     ) -> PushOutcome:
         """Execute the push, let the object come to rest, clear and park the pusher, report.
 
         With `on_frame` and `frame_interval_s` > 0 the camera watches the push: at the first
         protocol check at or after every multiple of `frame_interval_s` since the push began,
-        if the object is moving (not `at_rest`), a tracking frame is rendered and handed over.
+        if the object is moving (not `at_rest`), a tracking frame is rendered and handed over;
+        if it is at rest, nothing is rendered (a still object shows nothing new) and `on_still`
+        gets the frame's time, so that a tracker knows the object stopped there.
         Frames hang on the existing checks, so the steps an engine is asked for (`_advance`
         calls) are the same with or without frames: watching never changes the physics. The
         rate is therefore `1 / frame_interval_s` on average, each frame up to one check
@@ -250,6 +253,8 @@ class Simulator(ABC):
                     )
                     on_frame(frame)  # type: ignore[misc]
                     n_frames += 1
+                elif on_still is not None:
+                    on_still(t_s)
             return st
 
         # 1) the straight path at the commanded speed; the pusher is where the path is at the

@@ -337,6 +337,11 @@ def perceive_first(
     return perc, obs
 
 
+# A boundary traced on the pixel grid is off the true outline by a quantisation error of about
+# 1/sqrt(12) = 0.29 px rms; fits up to this rms are all "as good as the image tells".
+QUANTISED_FIT_PX = 0.5
+
+
 def _rot(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s], [s, c]])
@@ -456,11 +461,14 @@ class PoseTracker:
             best = min(f.rms_px for f in fits)
         # fits within a few degrees of each other are one basin: keep its best. Distinct
         # basins that fit equally well are symmetric copies: take the smallest rotation.
+        # "Equally well" is up to what the image can tell: a copy may fit a few tenths of a
+        # pixel better than the true pose (perspective shows other side walls where the object
+        # now stands), so any fit within the quantisation noise counts as good.
         basins: list[PoseFit] = []
         for f in sorted(fits, key=lambda f: f.rms_px):
             if all(abs(_wrap(f.pose.yaw_rad - b.pose.yaw_rad)) > math.radians(5) for b in basins):
                 basins.append(f)
-        good = [f for f in basins if f.rms_px <= best + 0.1]
+        good = [f for f in basins if f.rms_px <= max(best + 0.1, QUANTISED_FIT_PX)]
         chosen = min(good, key=lambda f: abs(_wrap(f.pose.yaw_rad - prev.yaw_rad)))
         # unwrapped: the yaw continues from the previous one, so that a tracked rotation over
         # several frames may exceed half a turn
@@ -473,6 +481,16 @@ class PoseTracker:
     def begin_push(self) -> None:
         """A push starts from the current pose, at rest: the next frames are predicted from it."""
         self._history = [(0.0, self.last.yaw_rad)]
+
+    def hold(self, t_s: float) -> None:
+        """A frame at `t_s` into the push showed the object at rest (not rendered: it shows
+        nothing new): the pose is the last one, and the next frame is predicted from rest.
+        Without it the rate of the last two moving frames is extrapolated over the gap: an
+        object that stops and is hit again (a high-friction floor) was then predicted to have
+        turned on, up to a whole symmetry angle."""
+        if not self._history:
+            self._history = [(0.0, self.last.yaw_rad)]
+        self._history.append((t_s, self.last.yaw_rad))
 
     def predicted_yaw(self, t_s: float) -> float:
         """The yaw at time `t_s` of the push, extrapolated at the rate of the last two frames
