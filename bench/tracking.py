@@ -20,7 +20,11 @@ and the episode's CPU time (`time.process_time`, so that other load on a shared 
 not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals);
 then per variant the tracking renders' mean CPU time and size; with `--full-frames` how far
 the measured rotations of window and full frames are apart; with `--compare-frames` a
-pixel-level comparison of window and full frames over every frame of a further run.
+pixel-level comparison of window and full frames over every frame of a further run; per
+variant the tracking's own CPU time per frame (`mask_pusher`, `observe_boundary`,
+`PoseTracker.track`). `--reference` adds every rate > 0 once more through the numpy paths the
+compiled kernels replaced (the tracker's ICP `PoseTracker._icp`, and on planar the ray cast
+`render_prism_depth_numpy` for every image), in the same run, and compares their results.
 """
 
 from __future__ import annotations
@@ -39,9 +43,11 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from episode_profile import job_specs  # noqa: E402
 
+import comexp.experiment.episode as episode_module  # noqa: E402
 from comexp.experiment.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
 from comexp.experiment.simulator import make_simulator  # noqa: E402
-from comexp.method.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
+from comexp.method import perception  # noqa: E402
+from comexp.method.perception import MIN_HEIGHT_M, PoseTracker, mask_pusher  # noqa: E402
 from comexp.method.scene import DepthImage  # noqa: E402
 
 ALIAS_DEG = 10.0
@@ -79,6 +85,55 @@ def _timed(render: Callable[[], DepthImage], log: list[tuple[float, int]]):
     return timed
 
 
+class FrameClock:
+    """CPU time of the tracking pieces of every frame (`on_frame` of the episode), logged
+    into `log` (a list per variant): mask_pusher + observe_boundary + track per frame."""
+
+    def __init__(self) -> None:
+        self.log: list[float] = []
+        self._acc = 0.0
+        mask, boundary, track = (
+            episode_module.mask_pusher,
+            episode_module.observe_boundary,
+            PoseTracker.track,
+        )
+
+        def timed(f, closes: bool):
+            def g(*a, **k):
+                t = time.process_time()
+                try:
+                    return f(*a, **k)
+                finally:
+                    self._acc += time.process_time() - t
+                    if closes:  # track ends a frame
+                        self.log.append(self._acc)
+                        self._acc = 0.0
+
+            return g
+
+        episode_module.mask_pusher = timed(mask, False)
+        episode_module.observe_boundary = timed(boundary, False)
+        PoseTracker.track = timed(track, True)
+
+
+def _numpy_icp(self, q, yaw0, t0, max_iter, tol_rad, tol_m):
+    """The tracker's ICP as before its kernel: `PoseTracker._icp` (numpy, lstsq)."""
+    return self._icp(q, yaw0, t0, max_iter=max_iter, tol_rad=tol_rad, tol_m=tol_m)
+
+
+def use_reference(on: bool) -> None:
+    """Swap the compiled paths for the numpy ones they replaced (or back)."""
+    PoseTracker._icp_fast = _numpy_icp if on else _COMPILED["icp"]
+    planar_sim = sys.modules.get("comexp.backends.planar_sim")
+    if planar_sim is not None:  # its images: the name it imported
+        planar_sim.render_prism_depth = (
+            perception.render_prism_depth_numpy if on else perception.render_prism_depth
+        )
+
+
+_COMPILED = {"icp": PoseTracker._icp_fast}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="planar")
@@ -99,6 +154,11 @@ def main() -> None:
         help="then run every episode once more at the last rate, rendering each tracking frame "
         "as window and as full image, and compare their pixels",
     )
+    ap.add_argument(
+        "--reference",
+        action="store_true",
+        help="also every rate > 0 through the numpy paths the compiled kernels replaced",
+    )
     args = ap.parse_args()
     rates = [float(f) for f in args.fps.split(",")]
     if rates[0] != 0.0:
@@ -112,8 +172,12 @@ def main() -> None:
     variants: list[tuple[str, dict]] = [(f"{f:g} fps", {"camera_fps": f}) for f in rates]
     if args.full_frames:
         variants += [(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
+    if args.reference:
+        variants += [(f"{f:g} ref", {"camera_fps": f}) for f in rates if f > 0]
     if args.oracle:
         variants.append(("oracle", {}))
+    clock = FrameClock()
+    frame_cpu: dict[str, list[float]] = {v: [] for v, _ in variants}
     results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
     walls: dict[str, list[float]] = {v: [] for v, _ in variants}
     window = sim.render_tracking_depth
@@ -131,9 +195,12 @@ def main() -> None:
             # "full": tracking frames through the full image (the hook's default)
             render = sim.render_depth if label.endswith("full") else window
             sim.render_tracking_depth = _timed(render, renders[label])
+            clock.log = frame_cpu[label]
+            use_reference(label.endswith("ref"))
             t = time.process_time()  # CPU time: the machine's other load does not count
             results[label].append(run_episode(s, sim))
             walls[label].append(time.process_time() - t)
+            use_reference(False)
     print(
         f"{args.backend}, iso floor mu {args.mu:g}, {args.speed:g} cm/s, {len(specs)} episodes "
         f"(every {stride}th of the job's grid), {time.perf_counter() - t0:.0f} s"
@@ -154,6 +221,16 @@ def main() -> None:
                 f"{label}: {len(renders[label])} tracking renders, {ms:.2f} ms CPU, "
                 f"{px:.0f} px each"
             )
+    for label, _ in variants:
+        if frame_cpu[label]:
+            ms = 1e3 * statistics.fmean(frame_cpu[label])
+            print(
+                f"{label}: tracking (mask_pusher + observe_boundary + track) {ms:.3f} ms CPU "
+                f"per frame, {len(frame_cpu[label])} frames"
+            )
+    for label, _ in variants:
+        if label.endswith("ref"):
+            compare_reference(label, results[label.replace("ref", "fps")], results[label])
     for label, _ in variants:
         if label.endswith("full"):
             compare_results(label, results[label.replace("full", "fps")], results[label])
@@ -180,6 +257,30 @@ def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResu
     print(
         f"{label} vs window: max |rotation difference| {worst:.2e} deg over the pushes chosen "
         f"alike; {diverged} of {len(win)} episodes chose a different push"
+    )
+
+
+def compare_reference(label: str, new: list[EpisodeResult], ref: list[EpisodeResult]) -> None:
+    """Compiled vs numpy paths, episode by episode: episodes whose status, failure, push
+    choices or decisions differ (any is a bug), and the largest |difference| of the measured
+    and true rotations and of the CoM error over the rest."""
+    other = 0
+    rot = rot_true = err = 0.0
+    for a, b in zip(new, ref, strict=True):
+        pa = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in a.pushes]
+        pb = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in b.pushes]
+        if (a.status, a.failure, pa) != (b.status, b.failure, pb):
+            other += 1
+            continue
+        for p, q in zip(a.pushes, b.pushes, strict=True):
+            rot = max(rot, abs(p.rotation_deg - q.rotation_deg))
+            rot_true = max(rot_true, abs(p.rotation_true_deg - q.rotation_true_deg))
+        if a.error_cm is not None and b.error_cm is not None:
+            err = max(err, abs(a.error_cm - b.error_cm))
+    print(
+        f"{label} vs compiled: {other} of {len(new)} episodes differ in status, failure, push "
+        f"choice or decision; over the others max |difference| rotation {rot:.2e} deg, true "
+        f"rotation {rot_true:.2e} deg, CoM error {err:.2e} cm"
     )
 
 

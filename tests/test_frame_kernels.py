@@ -1,26 +1,34 @@
-"""The compiled paths of a tracking frame agree with the numpy they replaced: the tracker's
-ICP kernel with `PoseTracker._icp` (the numpy ICP `fit` still runs), on real frames of every
+"""The cheaper paths of a tracking frame agree with what they replaced: the tracker's ICP
+kernel with `PoseTracker._icp` (the numpy ICP `fit` still runs), on real frames of every
 built-in object at random poses and seeds, up to rounding; planar's ray cast with the numpy
-one (`render_prism_depth_numpy`), pixel for pixel."""
+one (`render_prism_depth_numpy`), pixel for pixel; `mask_pusher` and `observe_boundary` with
+their numpy versions before (kept below), exactly."""
 
 from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from comexp.experiment.objects import load_objects
+from comexp.method.geometry import centroid as polygon_centroid
 from comexp.method.perception import (
+    MIN_HEIGHT_M,
+    PerceptionError,
     PoseTracker,
+    TrackingView,
     _icp_kernel,
     _prism_kernel,
+    floor_depth_m,
+    mask_pusher,
     observe_boundary,
     perceive_first,
     render_prism_depth,
     render_prism_depth_numpy,
 )
-from comexp.method.scene import CameraSpec, Pose2D
+from comexp.method.scene import CameraSpec, DepthImage, Pose2D
 
 CAM = CameraSpec().model()
 OBJECTS = load_objects()
@@ -149,3 +157,104 @@ def test_render_prism_depth_pixels_on_an_edge_are_shapely_s():
     assert len(amb) >= 20  # a row or column of pixels on the edges was handed over
     v, u = amb[:, 0].astype(int), amb[:, 1].astype(int)
     assert np.all(out[v, u] == hz) and np.any(ref[v, u] < hz)
+
+
+def _mask_pusher_before(img, pusher_xy_m, radius_m, margin_m=1e-3):
+    """`mask_pusher` at a74eeeb (numpy camera calls)."""
+    cam = img.camera
+    depth = img.depth_m
+    hz = floor_depth_m(cam)
+    r = radius_m + margin_m
+    x, y = pusher_xy_m
+    corners = np.array([[x - r, y - r], [x + r, y + r]])
+    uv = np.concatenate(
+        [
+            cam.world_to_pixel(corners[:, 0], corners[:, 1], 0.0),
+            cam.world_to_pixel(corners[:, 0], corners[:, 1], 0.5 * hz),
+        ]
+    )
+    u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
+    u1 = min(int(np.ceil(uv[:, 0].max())) + 1, cam.width_px - 1)
+    v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
+    v1 = min(int(np.ceil(uv[:, 1].max())) + 1, cam.height_px - 1)
+    if u1 < u0 or v1 < v0:
+        return img
+    d = depth[v0 : v1 + 1, u0 : u1 + 1]
+    vv, uu = np.nonzero(d < hz - MIN_HEIGHT_M)
+    if len(vv) == 0:
+        return img
+    p = cam.pixel_to_world(uu + u0, vv + v0, d[vv, uu])
+    hit = np.hypot(p[:, 0] - x, p[:, 1] - y) < r
+    if not hit.any():
+        return img
+    out = depth.copy()
+    out[vv[hit] + v0, uu[hit] + u0] = hz
+    return DepthImage(out, cam)
+
+
+def _observe_boundary_before(img, near_xy_m=None, reach_m=0.15, max_points=64):
+    """`observe_boundary` at a74eeeb (numpy camera calls)."""
+    cam = img.camera
+    depth = img.depth_m
+    h, w = depth.shape
+    u0, v0, u1, v1 = 0, 0, w - 1, h - 1
+    if near_xy_m is not None:
+        x, y = near_xy_m
+        xs, ys = np.array([x - reach_m, x + reach_m]), np.array([y + reach_m, y - reach_m])
+        uv = cam.world_to_pixel(xs, ys, 0.0)
+        u0, u1 = max(int(uv[0, 0]), 0), min(int(math.ceil(uv[1, 0])), w - 1)
+        v0, v1 = max(int(uv[0, 1]), 0), min(int(math.ceil(uv[1, 1])), h - 1)
+    win = depth[v0 : v1 + 1, u0 : u1 + 1]
+    above = (np.isfinite(win) & (win < floor_depth_m(cam) - MIN_HEIGHT_M)).astype(np.uint8)
+    contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        raise PerceptionError("no object above the floor in the tracking frame", "left_view")
+    c = max(contours, key=len)[:, 0, :]
+    if len(c) > max_points:
+        c = c[:: math.ceil(len(c) / max_points)]
+    cu, cv_ = c[:, 0] + u0, c[:, 1] + v0
+    contour = cam.pixel_to_world(cu, cv_, depth[cv_, cu])[:, :2]
+    centre = polygon_centroid(contour) if len(contour) >= 3 else contour.mean(axis=0)
+    return TrackingView(contour, centre)
+
+
+def _with_pusher(img, xy, radius_m, top_m):
+    """The image with a vertical cylinder (the pusher) drawn in: every pixel whose ray meets
+    its top disc reads the top's depth (nearer than what was there)."""
+    cam = img.camera
+    depth = img.depth_m.copy()
+    dz = cam.position_m[2] - top_m
+    v, u = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
+    p = cam.pixel_to_world(u, v, np.full(u.shape, dz))
+    on = np.hypot(p[..., 0] - xy[0], p[..., 1] - xy[1]) < radius_m
+    depth[on] = np.minimum(depth[on], dz)
+    return DepthImage(depth, cam)
+
+
+def test_mask_pusher_and_observe_boundary_are_exactly_what_they_were():
+    rng = np.random.default_rng(7)
+    hit = 0
+    for outline, height, pose in _random_prisms(60, seed=13):
+        img = render_prism_depth(CAM, outline, height, pose)
+        # the pusher touching the outline somewhere (or off, or out of view)
+        k = int(rng.integers(len(outline)))
+        edge = pose.to_world(outline[[k, (k + 1) % len(outline)]])
+        mid = edge.mean(axis=0) + rng.normal(0.0, 0.01, 2)
+        radius = float(rng.uniform(0.004, 0.008))
+        img = _with_pusher(img, mid, radius, float(rng.uniform(0.02, 0.06)))
+        xy = (float(mid[0] + rng.normal(0, 1e-4)), float(mid[1]))
+        a, b = mask_pusher(img, xy, radius), _mask_pusher_before(img, xy, radius)
+        assert (a is img) == (b is img)
+        np.testing.assert_array_equal(a.depth_m, b.depth_m)
+        hit += a is not img
+        for near in (None, (pose.x_m, pose.y_m), tuple(rng.uniform(-0.3, 0.3, 2))):
+            try:
+                ref = _observe_boundary_before(a, near)
+            except PerceptionError:
+                with pytest.raises(PerceptionError):
+                    observe_boundary(a, near)
+                continue
+            new = observe_boundary(a, near)
+            np.testing.assert_array_equal(new.contour_m, ref.contour_m)
+            np.testing.assert_array_equal(new.centroid_m, ref.centroid_m)
+    assert hit > 20  # the pusher was in view and masked in most images

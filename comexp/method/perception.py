@@ -195,25 +195,28 @@ def mask_pusher(
     r = radius_m + margin_m
     x, y = pusher_xy_m
     # the pusher's projection at the floor and up to the camera's near end of the object
-    corners = np.array([[x - r, y - r], [x + r, y + r]])
-    uv = np.concatenate(
-        [
-            cam.world_to_pixel(corners[:, 0], corners[:, 1], 0.0),
-            cam.world_to_pixel(corners[:, 0], corners[:, 1], 0.5 * hz),
-        ]
-    )
-    u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
-    u1 = min(int(np.ceil(uv[:, 0].max())) + 1, cam.width_px - 1)
-    v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
-    v1 = min(int(np.ceil(uv[:, 1].max())) + 1, cam.height_px - 1)
+    # (`CameraModel.world_to_pixel` of the square's corners, in scalars: the same arithmetic)
+    x0, y0, z0 = cam.position_m
+    us, vs = [], []
+    for depth_c in (z0 - 0.0, z0 - 0.5 * hz):
+        for cx, cy in ((x - r, y - r), (x + r, y + r)):
+            us.append(cam.cx_px + (cx - x0) * cam.fx_px / depth_c)
+            vs.append(cam.cy_px - (cy - y0) * cam.fy_px / depth_c)
+    u0 = max(math.floor(min(us)) - 1, 0)
+    u1 = min(math.ceil(max(us)) + 1, cam.width_px - 1)
+    v0 = max(math.floor(min(vs)) - 1, 0)
+    v1 = min(math.ceil(max(vs)) + 1, cam.height_px - 1)
     if u1 < u0 or v1 < v0:
         return img
     d = depth[v0 : v1 + 1, u0 : u1 + 1]
     vv, uu = np.nonzero(d < hz - MIN_HEIGHT_M)  # only what is above the floor can be it
     if len(vv) == 0:
         return img
-    p = cam.pixel_to_world(uu + u0, vv + v0, d[vv, uu])
-    hit = np.hypot(p[:, 0] - x, p[:, 1] - y) < r
+    dv = d[vv, uu]
+    # `CameraModel.pixel_to_world`'s x and y, without the stacking
+    px = x0 + ((uu + u0).astype(float) - cam.cx_px) * dv / cam.fx_px
+    py = y0 - ((vv + v0).astype(float) - cam.cy_px) * dv / cam.fy_px
+    hit = np.hypot(px - x, py - y) < r
     if not hit.any():
         return img
     out = depth.copy()
@@ -246,14 +249,19 @@ def observe_boundary(
     depth = img.depth_m
     h, w = depth.shape
     u0, v0, u1, v1 = 0, 0, w - 1, h - 1
+    x0, y0, z0 = cam.position_m
     if near_xy_m is not None:
+        # `CameraModel.world_to_pixel` of the window's corners at the floor, in scalars
         x, y = near_xy_m
-        xs, ys = np.array([x - reach_m, x + reach_m]), np.array([y + reach_m, y - reach_m])
-        uv = cam.world_to_pixel(xs, ys, 0.0)
-        u0, u1 = max(int(uv[0, 0]), 0), min(int(math.ceil(uv[1, 0])), w - 1)
-        v0, v1 = max(int(uv[0, 1]), 0), min(int(math.ceil(uv[1, 1])), h - 1)
+        fl = z0 - 0.0
+        ua = cam.cx_px + ((x - reach_m) - x0) * cam.fx_px / fl
+        ub = cam.cx_px + ((x + reach_m) - x0) * cam.fx_px / fl
+        va = cam.cy_px - ((y + reach_m) - y0) * cam.fy_px / fl
+        vb = cam.cy_px - ((y - reach_m) - y0) * cam.fy_px / fl
+        u0, u1 = max(int(ua), 0), min(int(math.ceil(ub)), w - 1)
+        v0, v1 = max(int(va), 0), min(int(math.ceil(vb)), h - 1)
     win = depth[v0 : v1 + 1, u0 : u1 + 1]
-    above = (np.isfinite(win) & (win < floor_depth_m(cam) - min_height_m)).astype(np.uint8)
+    above = (np.isfinite(win) & (win < floor_depth_m(cam) - min_height_m)).view(np.uint8)
     contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         raise PerceptionError("no object above the floor in the tracking frame", "left_view")
@@ -261,7 +269,11 @@ def observe_boundary(
     if len(c) > max_points:
         c = c[:: math.ceil(len(c) / max_points)]
     cu, cv_ = c[:, 0] + u0, c[:, 1] + v0
-    contour = cam.pixel_to_world(cu, cv_, depth[cv_, cu])[:, :2]
+    dc = depth[cv_, cu]
+    # `CameraModel.pixel_to_world`'s x and y, without the stacking
+    contour = np.empty((len(c), 2))
+    contour[:, 0] = x0 + (cu.astype(float) - cam.cx_px) * dc / cam.fx_px
+    contour[:, 1] = y0 - (cv_.astype(float) - cam.cy_px) * dc / cam.fy_px
     centre = polygon_centroid(contour) if len(contour) >= 3 else contour.mean(axis=0)
     return TrackingView(contour, centre)
 
