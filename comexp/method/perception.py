@@ -199,9 +199,9 @@ def mask_pusher(
     x0, y0, z0 = cam.position_m
     us, vs = [], []
     for depth_c in (z0 - 0.0, z0 - 0.5 * hz):
-        for cx, cy in ((x - r, y - r), (x + r, y + r)):
-            us.append(cam.cx_px + (cx - x0) * cam.fx_px / depth_c)
-            vs.append(cam.cy_px - (cy - y0) * cam.fy_px / depth_c)
+        for wx, wy in ((x - r, y - r), (x + r, y + r)):
+            us.append(cam.cx_px + (wx - x0) * cam.fx_px / depth_c)
+            vs.append(cam.cy_px - (wy - y0) * cam.fy_px / depth_c)
     u0 = max(math.floor(min(us)) - 1, 0)
     u1 = min(math.ceil(max(us)) + 1, cam.width_px - 1)
     v0 = max(math.floor(min(vs)) - 1, 0)
