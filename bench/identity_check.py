@@ -9,6 +9,13 @@ episodes) over the expanded grid, computed without running anything. `rows`: a 4
 planar slice (2 objects x 5 CoMs x 2 floors x 2 pusher frictions, Izz x1) run by the `comexp`
 command into a fresh SQLite file, every episode and push column except what differs from run
 to run (ids, timestamps, wall time, the worker's pid, the sweep id). Exit 1 when anything differs.
+
+    .venv/bin/python bench/identity_check.py --compare before.json --float-tol 1e-6
+
+"The same up to rounding": float columns may differ by at most `--float-tol` (their units:
+cm, deg, s, unit vectors); the largest |difference| per float column is printed. Any other
+column (a decision, a failure, a count, a string) must be equal. `--now after.json` compares
+with a measurement written before instead of running one.
 """
 
 from __future__ import annotations
@@ -111,7 +118,15 @@ def measure() -> dict[str, Any]:
     }
 
 
-def compare(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+def compare(
+    old: dict[str, Any],
+    new: dict[str, Any],
+    float_tol: float | None = None,
+    worst: dict[str, float] | None = None,
+) -> list[str]:
+    """What differs; with `float_tol`, float columns count only beyond it (their largest
+    |difference| collected into `worst`)."""
+    worst = {} if worst is None else worst
     diffs = []
     if old["keys"]["list"] != new["keys"]["list"]:
         a, b = set(old["keys"]["list"]), set(new["keys"]["list"])
@@ -123,10 +138,36 @@ def compare(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     if set(ro) != set(rn):
         diffs.append(f"slice episodes differ: {len(set(ro) ^ set(rn))} keys in one run only")
     for key in sorted(set(ro) & set(rn)):
-        if ro[key] != rn[key]:
+        if ro[key] == rn[key]:
+            continue
+        if float_tol is None:
             cols = sorted(c for c in ro[key] if ro[key].get(c) != rn[key].get(c))
             diffs.append(f"episode {key[:12]}: {', '.join(cols)} differ")
+            continue
+        hard = _float_differences(ro[key], rn[key], worst, "")
+        bad = hard + sorted(c for c, d in worst.items() if d > float_tol)
+        if bad:
+            diffs.append(f"episode {key[:12]}: {', '.join(sorted(set(bad)))} differ")
     return diffs
+
+
+def _float_differences(a: dict, b: dict, worst: dict[str, float], prefix: str) -> list[str]:
+    """Record the largest |a - b| of every float column in `worst` (pushes as "pushes.col");
+    return the columns that differ otherwise (not floats, or a different number of pushes)."""
+    hard = []
+    for col in sorted(set(a) | set(b)):
+        x, y = a.get(col), b.get(col)
+        name = prefix + col
+        if col == "pushes" and isinstance(x, list) and isinstance(y, list):
+            if len(x) != len(y):
+                hard.append("pushes (number)")
+            for p, q in zip(x, y, strict=False):
+                hard += _float_differences(p, q, worst, "pushes.")
+        elif isinstance(x, float) and isinstance(y, float):
+            worst[name] = max(worst.get(name, 0.0), abs(x - y))
+        elif x != y:
+            hard.append(name)
+    return hard
 
 
 def main() -> int:
@@ -134,8 +175,12 @@ def main() -> int:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--out", type=Path, help="write the measurement (JSON)")
     g.add_argument("--compare", type=Path, help="compare with a measurement written before")
+    p.add_argument("--float-tol", type=float, help="float columns may differ by this much")
+    p.add_argument("--now", type=Path, help="with --compare: this measurement, not a new run")
     args = p.parse_args()
-    now = measure()
+    if args.now and not args.compare:
+        p.error("--now needs --compare")
+    now = json.loads(args.now.read_text()) if args.now else measure()
     n_pushes = sum(len(r["pushes"]) for r in now["rows"].values())
     print(
         f"default job: {now['keys']['n']} episode keys ({now['keys']['distinct']} distinct), "
@@ -146,10 +191,15 @@ def main() -> int:
         args.out.write_text(json.dumps(now, indent=1, sort_keys=True))
         print(f"written: {args.out}")
         return 0
-    diffs = compare(json.loads(args.compare.read_text()), now)
+    worst: dict[str, float] = {}
+    diffs = compare(json.loads(args.compare.read_text()), now, args.float_tol, worst)
+    if args.float_tol is not None:
+        for col, d in sorted(worst.items()):
+            print(f"  max |difference| {col}: {d:.3g}")
     for d in diffs:
         print(d)
-    print("identical" if not diffs else f"{len(diffs)} difference(s)")
+    same = "identical" if args.float_tol is None else f"identical up to {args.float_tol:g}"
+    print(same if not diffs else f"{len(diffs)} difference(s)")
     return 1 if diffs else 0
 
 

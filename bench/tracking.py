@@ -20,7 +20,16 @@ and the episode's CPU time (`time.process_time`, so that other load on a shared 
 not count) relative to rate 0 (median of per-episode ratios, and the ratio of the totals);
 then per variant the tracking renders' mean CPU time and size; with `--full-frames` how far
 the measured rotations of window and full frames are apart; with `--compare-frames` a
-pixel-level comparison of window and full frames over every frame of a further run.
+pixel-level comparison of window and full frames over every frame of a further run; per
+variant the tracking's own CPU time per frame (`mask_pusher`, `observe_boundary`,
+`PoseTracker.track`). `--baseline FILE` adds every rate once more with another version
+of comexp/method/perception.py (the episode's perception and tracking, and planar's ray cast
+for every image), in the same run (its cost relative to its own 0 fps), and compares the
+results episode by episode:
+
+    git show a74eeeb:comexp/method/perception.py > /tmp/perception_old.py
+    .venv/bin/python bench/tracking.py --backend pybullet --episodes 16 --fps 0,30 \\
+        --baseline /tmp/perception_old.py
 """
 
 from __future__ import annotations
@@ -37,10 +46,12 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from episode_profile import job_specs  # noqa: E402
+from episode_profile import _load_module, job_specs  # noqa: E402
 
+import comexp.experiment.episode as episode_module  # noqa: E402
 from comexp.experiment.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
 from comexp.experiment.simulator import make_simulator  # noqa: E402
+from comexp.method import perception  # noqa: E402
 from comexp.method.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
 from comexp.method.scene import DepthImage  # noqa: E402
 
@@ -79,6 +90,57 @@ def _timed(render: Callable[[], DepthImage], log: list[tuple[float, int]]):
     return timed
 
 
+# what a baseline perception module replaces in the episode (`--baseline`)
+SWAPPED = (
+    "perceive_first",
+    "observe",
+    "PoseTracker",
+    "PerceptionError",
+    "mask_pusher",
+    "observe_boundary",
+)
+
+
+class FrameClock:
+    """CPU time of the tracking pieces of every frame (the episode's `on_frame`): the
+    variant's mask_pusher + observe_boundary + PoseTracker.track, logged into `log`."""
+
+    def __init__(self) -> None:
+        self.log: list[float] = []
+        self._acc = 0.0
+
+    def timed(self, f: Callable, closes: bool) -> Callable:
+        def g(*a, **k):
+            t = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                self._acc += time.process_time() - t
+                if closes:  # track ends a frame
+                    self.log.append(self._acc)
+                    self._acc = 0.0
+
+        return g
+
+    def wrap(self, fns: dict) -> dict:
+        """The episode's names `fns`, their frame pieces timed (`track` on the class)."""
+        out = dict(fns)
+        out["mask_pusher"] = self.timed(fns["mask_pusher"], False)
+        out["observe_boundary"] = self.timed(fns["observe_boundary"], False)
+        cls = fns["PoseTracker"]
+        cls.track = self.timed(cls.track, True)
+        return out
+
+
+def use(fns: dict, render: Callable) -> None:
+    """Make the episode (and planar's images: the name it imported) use these versions."""
+    for k, v in fns.items():
+        setattr(episode_module, k, v)
+    planar_sim = sys.modules.get("comexp.backends.planar_sim")
+    if planar_sim is not None:
+        planar_sim.render_prism_depth = render
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="planar")
@@ -99,6 +161,12 @@ def main() -> None:
         help="then run every episode once more at the last rate, rendering each tracking frame "
         "as window and as full image, and compare their pixels",
     )
+    ap.add_argument(
+        "--baseline",
+        metavar="FILE",
+        help="also every rate with this version of comexp/method/perception.py (e.g. git "
+        "show a74eeeb:comexp/method/perception.py > /tmp/perception_old.py), in the same run",
+    )
     args = ap.parse_args()
     rates = [float(f) for f in args.fps.split(",")]
     if rates[0] != 0.0:
@@ -112,8 +180,19 @@ def main() -> None:
     variants: list[tuple[str, dict]] = [(f"{f:g} fps", {"camera_fps": f}) for f in rates]
     if args.full_frames:
         variants += [(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
+    clock = FrameClock()
+    current = clock.wrap({k: getattr(episode_module, k) for k in SWAPPED})
+    render_now = perception.render_prism_depth
+    if args.baseline:
+        if not os.path.isfile(args.baseline):
+            raise SystemExit(f"--baseline: no such file: {args.baseline}")
+        old = _load_module("baseline_perception", args.baseline)
+        baseline = clock.wrap({k: getattr(old, k) for k in SWAPPED})
+        # every rate, 0 too: a baseline's cost is relative to its own 0 fps episode
+        variants += [(f"{f:g} base", {"camera_fps": f}) for f in rates]
     if args.oracle:
         variants.append(("oracle", {}))
+    frame_cpu: dict[str, list[float]] = {v: [] for v, _ in variants}
     results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
     walls: dict[str, list[float]] = {v: [] for v, _ in variants}
     window = sim.render_tracking_depth
@@ -131,9 +210,13 @@ def main() -> None:
             # "full": tracking frames through the full image (the hook's default)
             render = sim.render_depth if label.endswith("full") else window
             sim.render_tracking_depth = _timed(render, renders[label])
+            clock.log = frame_cpu[label]
+            if label.endswith("base"):
+                use(baseline, old.render_prism_depth)
             t = time.process_time()  # CPU time: the machine's other load does not count
             results[label].append(run_episode(s, sim))
             walls[label].append(time.process_time() - t)
+            use(current, render_now)
     print(
         f"{args.backend}, iso floor mu {args.mu:g}, {args.speed:g} cm/s, {len(specs)} episodes "
         f"(every {stride}th of the job's grid), {time.perf_counter() - t0:.0f} s"
@@ -143,8 +226,8 @@ def main() -> None:
         " | fr/push | CoM err  | cost (median / total) |"
     )
     print("|" + "---|" * 10)
-    base = walls[variants[0][0]]
     for label, _ in variants:
+        base = walls["0 base" if label.endswith("base") else variants[0][0]]
         summarise(label, results[label], walls[label], base)
     for label, _ in variants:
         if renders[label]:
@@ -154,6 +237,16 @@ def main() -> None:
                 f"{label}: {len(renders[label])} tracking renders, {ms:.2f} ms CPU, "
                 f"{px:.0f} px each"
             )
+    for label, _ in variants:
+        if frame_cpu[label]:
+            ms = 1e3 * statistics.fmean(frame_cpu[label])
+            print(
+                f"{label}: tracking (mask_pusher + observe_boundary + track) {ms:.3f} ms CPU "
+                f"per frame, {len(frame_cpu[label])} frames"
+            )
+    for label, _ in variants:
+        if label.endswith("base"):
+            compare_baseline(label, results[label.replace("base", "fps")], results[label])
     for label, _ in variants:
         if label.endswith("full"):
             compare_results(label, results[label.replace("full", "fps")], results[label])
@@ -180,6 +273,30 @@ def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResu
     print(
         f"{label} vs window: max |rotation difference| {worst:.2e} deg over the pushes chosen "
         f"alike; {diverged} of {len(win)} episodes chose a different push"
+    )
+
+
+def compare_baseline(label: str, new: list[EpisodeResult], ref: list[EpisodeResult]) -> None:
+    """Current vs baseline perception, episode by episode: episodes whose status, failure, push
+    choices or decisions differ (any is a bug), and the largest |difference| of the measured
+    and true rotations and of the CoM error over the rest."""
+    other = 0
+    rot = rot_true = err = 0.0
+    for a, b in zip(new, ref, strict=True):
+        pa = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in a.pushes]
+        pb = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in b.pushes]
+        if (a.status, a.failure, pa) != (b.status, b.failure, pb):
+            other += 1
+            continue
+        for p, q in zip(a.pushes, b.pushes, strict=True):
+            rot = max(rot, abs(p.rotation_deg - q.rotation_deg))
+            rot_true = max(rot_true, abs(p.rotation_true_deg - q.rotation_true_deg))
+        if a.error_cm is not None and b.error_cm is not None:
+            err = max(err, abs(a.error_cm - b.error_cm))
+    print(
+        f"{label} vs current: {other} of {len(new)} episodes differ in status, failure, push "
+        f"choice or decision; over the others max |difference| rotation {rot:.2e} deg, true "
+        f"rotation {rot_true:.2e} deg, CoM error {err:.2e} cm"
     )
 
 
