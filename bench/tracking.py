@@ -35,6 +35,7 @@ results episode by episode:
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import sys
@@ -103,11 +104,30 @@ SWAPPED = (
 
 class FrameClock:
     """CPU time of the tracking pieces of every frame (the episode's `on_frame`): the
-    variant's mask_pusher + observe_boundary + PoseTracker.track, logged into `log`."""
+    variant's mask_pusher + observe_boundary + PoseTracker.track, logged into `log`; and
+    each tracked frame's turn beyond the tracker's prediction (|fitted - predicted yaw|,
+    deg) into `surprise`: what a frame must stay below (half a symmetry angle)."""
 
     def __init__(self) -> None:
         self.log: list[float] = []
+        self.surprise: list[float] = []
+        self.worst: list[tuple[float, str, float, float]] = []  # deg, episode, t_s, gap_s
+        self.context = ""
         self._acc = 0.0
+
+    def surprised(self, track: Callable) -> Callable:
+        def g(tracker, view, t_s, *a, **k):
+            yaw0 = tracker.predicted_yaw(t_s)
+            h = tracker._history
+            gap_s = t_s - h[-1][0] if h else t_s
+            f = track(tracker, view, t_s, *a, **k)
+            deg = abs(math.degrees(f.pose.yaw_rad - yaw0))
+            self.surprise.append(deg)
+            self.worst.append((deg, self.context, t_s, gap_s))
+            self.worst = sorted(self.worst, reverse=True)[:3]
+            return f
+
+        return g
 
     def timed(self, f: Callable, closes: bool) -> Callable:
         def g(*a, **k):
@@ -128,7 +148,7 @@ class FrameClock:
         out["mask_pusher"] = self.timed(fns["mask_pusher"], False)
         out["observe_boundary"] = self.timed(fns["observe_boundary"], False)
         cls = fns["PoseTracker"]
-        cls.track = self.timed(cls.track, True)
+        cls.track = self.timed(self.surprised(cls.track), True)
         return out
 
 
@@ -149,6 +169,19 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=48)
     ap.add_argument("--fps", default="0,10,15,30", help="camera rates (vision), 0 first")
     ap.add_argument("--oracle", action="store_true", help="also rotation_source=oracle")
+    ap.add_argument(
+        "--track-gaps",
+        default="",
+        metavar="S,...",
+        help="also every rate > 0 with these estimator.track_gap values (default step)",
+    )
+    ap.add_argument(
+        "--track-steps",
+        default="",
+        metavar="DEG,...",
+        help="also every rate > 0 with these estimator.track_step values (0 = every camera "
+        "frame), compared episode by episode with the default",
+    )
     ap.add_argument(
         "--full-frames",
         action="store_true",
@@ -180,6 +213,11 @@ def main() -> None:
     variants: list[tuple[str, dict]] = [(f"{f:g} fps", {"camera_fps": f}) for f in rates]
     if args.full_frames:
         variants += [(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
+    steps = [float(x) for x in args.track_steps.split(",") if x.strip()]
+    for step in steps:
+        variants += [(f"{f:g} st{step:g}", {"camera_fps": f}) for f in rates if f > 0]
+    for gap in [float(x) for x in args.track_gaps.split(",") if x.strip()]:
+        variants += [(f"{f:g} gap{gap:g}", {"camera_fps": f}) for f in rates if f > 0]
     clock = FrameClock()
     current = clock.wrap({k: getattr(episode_module, k) for k in SWAPPED})
     render_now = perception.render_prism_depth
@@ -193,6 +231,8 @@ def main() -> None:
     if args.oracle:
         variants.append(("oracle", {}))
     frame_cpu: dict[str, list[float]] = {v: [] for v, _ in variants}
+    surprise: dict[str, list[float]] = {v: [] for v, _ in variants}
+    worst: dict[str, list[tuple[float, str, float, float]]] = {v: [] for v, _ in variants}
     results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
     walls: dict[str, list[float]] = {v: [] for v, _ in variants}
     window = sim.render_tracking_depth
@@ -207,14 +247,24 @@ def main() -> None:
             s = replace(spec, **change)
             if label == "oracle":
                 s = replace(s, estimator=replace(s.estimator, rotation_source="oracle"))
+            if " st" in label:
+                step = float(label.split(" st")[1])
+                s = replace(s, estimator=replace(s.estimator, track_step_deg=step))
+            if " gap" in label:
+                gap = float(label.split(" gap")[1])
+                s = replace(s, estimator=replace(s.estimator, track_gap_s=gap))
             # "full": tracking frames through the full image (the hook's default)
             render = sim.render_depth if label.endswith("full") else window
             sim.render_tracking_depth = _timed(render, renders[label])
             clock.log = frame_cpu[label]
+            clock.surprise = surprise[label]
+            clock.worst = worst[label]
+            clock.context = f"{s.object} com {s.com_index} mu_p {s.mu_pusher:g} Izz {s.izz_scale:g}"
             if label.endswith("base"):
                 use(baseline, old.render_prism_depth)
             t = time.process_time()  # CPU time: the machine's other load does not count
             results[label].append(run_episode(s, sim))
+            worst[label] = clock.worst
             walls[label].append(time.process_time() - t)
             use(current, render_now)
     print(
@@ -245,8 +295,21 @@ def main() -> None:
                 f"per frame, {len(frame_cpu[label])} frames"
             )
     for label, _ in variants:
+        if surprise[label]:
+            q = np.quantile(surprise[label], [0.5, 0.99, 1.0])
+            print(
+                f"{label}: turn beyond the prediction per tracked frame, median / 99% / max "
+                f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} deg; largest: "
+                + "; ".join(
+                    f"{d:.2f} deg ({c}, t {t:.3f} s, gap {g:.3f} s)" for d, c, t, g in worst[label]
+                )
+            )
+    for label, _ in variants:
         if label.endswith("base"):
             compare_baseline(label, results[label.replace("base", "fps")], results[label])
+        if " st" in label or " gap" in label:
+            rate = label.split(" ")[0]
+            compare_baseline(label, results[rate + " fps"], results[label])
     for label, _ in variants:
         if label.endswith("full"):
             compare_results(label, results[label.replace("full", "fps")], results[label])

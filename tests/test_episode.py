@@ -75,11 +75,17 @@ class KinematicSim(Simulator):
         return render_prism_depth(cam, self.outline, self.scene.obj.height_m, self.pose)
 
     def push(
-        self, cmd: PushCommand, on_frame=None, frame_interval_s: float = 0.0, on_still=None
+        self,
+        cmd: PushCommand,
+        on_frame=None,
+        frame_interval_s: float = 0.0,
+        on_still=None,
+        frame_wanted=None,
     ) -> PushOutcome:
         """The motion takes `moving_s` at a constant rate; with `on_frame`, frames every
         `frame_interval_s` while it moves (the protocol's frame hook; it never rests in
-        between, so `on_still` is never called)."""
+        between, so `on_still` is never called; the pusher drives it all along, so
+        `frame_wanted` is asked with driving=True)."""
         k, self.n = self.n, self.n + 1
         if self.raise_at == k:
             raise RuntimeError("engine exploded")
@@ -106,6 +112,8 @@ class KinematicSim(Simulator):
         if on_frame is not None and frame_interval_s > 0 and contact:
             for i in range(1, math.ceil(self.moving_s / frame_interval_s)):
                 self.pose = pose_at(i * frame_interval_s / self.moving_s)
+                if frame_wanted is not None and not frame_wanted(i * frame_interval_s, True):
+                    continue
                 on_frame(Frame(self.render_depth(), i * frame_interval_s, (0.0, 0.5), 0.005))
                 n_frames += 1
         self.pose = pose_at(1.0)

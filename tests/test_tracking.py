@@ -150,6 +150,77 @@ def test_after_a_still_frame_the_tracker_predicts_from_rest():
     assert tracker.predicted_yaw(0.5) == pytest.approx(0.1)
 
 
+def _tracked_big_turn(step_deg: float, gap_s: float = 0.1):
+    """The -121 deg turn, tracked at 30 fps with the frame rule (`PoseTracker.wants_frame`):
+    the push's outcome, the final fit's yaw (deg), and each offered frame's (t_s, driving,
+    rendered)."""
+    sim = make_simulator("planar")
+    sim.build(replace(build_scene(box_spec()), initial_pose=Pose2D(0.0, 0.0, 0.0)))
+    perc, obs0 = perceive_first(sim.render_depth())
+    tracker = PoseTracker(perc, obs0)
+    tracker.begin_push()
+    offered: list[list] = []
+
+    def wanted(t_s: float, driving: bool) -> bool:
+        take = tracker.wants_frame(t_s, driving, step_deg, gap_s)
+        offered.append([t_s, driving, False])
+        return take
+
+    def on_frame(f: Frame) -> None:
+        assert offered[-1][0] == f.t_s  # rendered right after it was asked for
+        offered[-1][2] = True
+        img = mask_pusher(f.image, f.pusher_xy_m, f.pusher_radius_m)
+        tracker.track(observe_boundary(img, (tracker.last.x_m, tracker.last.y_m)), f.t_s)
+
+    cmd = contact_push((-0.04, 0.02), (1.0, 0.0), 0.03, 0.4, 0.005)
+    out = sim.push(cmd, on_frame, 1 / 30, on_still=tracker.hold, frame_wanted=wanted)
+    return out, math.degrees(tracker.fit(observe(sim.render_depth())).pose.yaw_rad), offered, cmd
+
+
+def test_once_the_pusher_stops_frames_are_tracked_where_the_turn_needs_them():
+    every, yaw_every, offered_every, cmd = _tracked_big_turn(0.0)
+    fewer, yaw_fewer, offered, _ = _tracked_big_turn(10.0)
+    assert all(r for _, _, r in offered_every) and every.n_frames == len(offered_every)
+    # watching never changes the physics
+    assert (fewer.pose_after, fewer.steps) == (every.pose_after, every.steps)
+    # "driving" = the pusher still on its path (travel / speed), and then every frame is taken
+    path_s = cmd.travel_m / cmd.speed_m_s
+    sim = make_simulator("planar")
+    chunk_s = sim.check_every_steps * sim.settings.timestep_s
+    assert all((t <= path_s + chunk_s) == d for t, d, _ in offered if abs(t - path_s) > chunk_s)
+    assert all(r for _, d, r in offered if d)
+    # after it, not every frame, never more than 0.1 s apart, and the turn is still unwrapped
+    taken = [t for t, _, r in offered if r]
+    assert every.n_frames > fewer.n_frames == len(taken) and not all(r for *_, r in offered)
+    assert all(b - a <= 0.1 + 1e-9 for a, b in zip(taken, taken[1:], strict=False))
+    assert yaw_fewer == pytest.approx(every.true_rotation_deg, abs=2.0)
+    assert yaw_every == pytest.approx(every.true_rotation_deg, abs=2.0)
+
+
+def test_the_frame_rule_takes_a_frame_at_the_predicted_step_or_the_gap():
+    sim = make_simulator("planar")
+    sim.build(replace(build_scene(box_spec()), initial_pose=Pose2D(0.0, 0.0, 0.0)))
+    tracker = PoseTracker(*perceive_first(sim.render_depth()))
+    tracker.begin_push()
+    assert tracker.wants_frame(0.03, False, 10.0, 0.1)  # nothing to predict from yet
+    tracker._history += [(0.1, 0.1)]  # 1 rad/s = 57.3 deg/s
+    step_t = 0.1 + math.radians(10.0)  # when the predicted turn reaches 10 deg
+    assert not tracker.wants_frame(step_t - 0.005, False, 10.0, 0.5)
+    assert tracker.wants_frame(step_t + 0.005, False, 10.0, 0.5)
+    assert tracker.wants_frame(0.2, False, 10.0, 0.1)  # the gap
+    assert not tracker.wants_frame(0.19, False, 10.0, 0.1)
+    assert tracker.wants_frame(0.11, True, 10.0, 0.5)  # the pusher drives
+    assert tracker.wants_frame(0.11, False, 0.0, 0.5)  # step 0: every frame
+    tracker._history[-1] = (0.1, 0.0)  # not turning: only the gap asks for a frame
+    assert not tracker.wants_frame(0.19, False, 10.0, 0.1)
+
+
+@pytest.mark.parametrize("knob,value", [("track_step", -1.0), ("track_gap", 0.0)])
+def test_frame_rule_knobs_are_checked(knob, value):
+    with pytest.raises(ConfigError, match=f"estimator.{knob}"):
+        prepare_job(_compose(f"estimator.{knob}={value}"))
+
+
 # Pushes the planar study at 30 fps measured off by a whole symmetry angle (docs/method.md,
 # "Tracking during the push"): episode 107 of the planar study (cross_12: push 3 measured -114
 # deg, true -24; the object stopped between frames and was hit again, and the tracker

@@ -128,6 +128,8 @@ class EstimatorConfig:
     C_bw: float = _EST.C_bw_px  # px
     n_push: int = _EST.n_push
     rotation_source: str = _EST.rotation_source  # vision | oracle
+    track_step: float = _EST.track_step_deg  # deg
+    track_gap: float = _EST.track_gap_s  # s
     d_metric: str = _EST.d_metric
     d_signed: bool = _EST.d_signed
     cos_signed: bool = _EST.cos_signed
@@ -147,6 +149,8 @@ SETTINGS_FIELDS: dict[str, str] = {
     "C_bw": "C_bw_px",
     "n_push": "n_push",
     "rotation_source": "rotation_source",
+    "track_step": "track_step_deg",
+    "track_gap": "track_gap_s",
     "d_metric": "d_metric",
     "d_signed": "d_signed",
     "cos_signed": "cos_signed",

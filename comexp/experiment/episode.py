@@ -250,6 +250,9 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                     on_frame=on_frame,
                     frame_interval_s=1.0 / spec.camera_fps,
                     on_still=tracker.hold,
+                    frame_wanted=lambda t_s, driving: tracker.wants_frame(
+                        t_s, driving, settings.track_step_deg, settings.track_gap_s
+                    ),
                 )
             else:
                 out = sim.push(cmd)

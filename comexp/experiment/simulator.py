@@ -192,6 +192,7 @@ class Simulator(ABC):
         on_frame: Callable[[Frame], None] | None = None,
         frame_interval_s: float = 0.0,
         on_still: Callable[[float], None] | None = None,
+        frame_wanted: Callable[[float, bool], bool] | None = None,
     ) -> PushOutcome:
         """Execute the push, let the object come to rest, clear and park the pusher, report.
 
@@ -200,6 +201,10 @@ class Simulator(ABC):
         if the object is moving (not `at_rest`), a tracking frame is rendered and handed over;
         if it is at rest, nothing is rendered (a still object shows nothing new) and `on_still`
         gets the frame's time, so that a tracker knows the object stopped there.
+        `frame_wanted(t_s, driving)`, if given, is asked before a moving frame is rendered
+        (`driving`: the pusher is still moving along the push line); a frame it declines is
+        neither rendered nor handed over, as a tracker that skips a camera frame never looks
+        at it.
         Frames hang on the existing checks, so the steps an engine is asked for (`_advance`
         calls) are the same with or without frames: watching never changes the physics. The
         rate is therefore `1 / frame_interval_s` on average, each frame up to one check
@@ -229,7 +234,7 @@ class Simulator(ABC):
         last_yaw = before.pose.yaw_rad
         turned = 0.0
 
-        def run(targets: np.ndarray) -> ObjectState:
+        def run(targets: np.ndarray, driving: bool = False) -> ObjectState:
             nonlocal steps, contact, status, max_tilt, next_frame_s, n_frames, last_yaw, turned
             touched, tilt = self._advance(targets)
             steps += len(targets)
@@ -243,7 +248,10 @@ class Simulator(ABC):
             t_s = steps * dt
             if watch and status is None and t_s >= next_frame_s - 1e-9:
                 next_frame_s = (math.floor(t_s / frame_interval_s + 1e-9) + 1) * frame_interval_s
-                if not at_rest(st, s):  # a still object shows nothing new: no frame
+                if at_rest(st, s):  # a still object shows nothing new: no frame
+                    if on_still is not None:
+                        on_still(t_s)
+                elif frame_wanted is None or frame_wanted(t_s, driving):
                     xy = self._pusher_xy()
                     frame = Frame(
                         self.render_tracking_depth(),
@@ -253,8 +261,6 @@ class Simulator(ABC):
                     )
                     on_frame(frame)  # type: ignore[misc]
                     n_frames += 1
-                elif on_still is not None:
-                    on_still(t_s)
             return st
 
         # 1) the straight path at the commanded speed; the pusher is where the path is at the
@@ -265,7 +271,7 @@ class Simulator(ABC):
             n = min(chunk, n_move - k)
             travelled = np.minimum(cmd.speed_m_s * dt * np.arange(k + 1, k + n + 1), cmd.travel_m)
             targets = start + travelled[:, None] * direction
-            run(targets)
+            run(targets, driving=True)
             k += n
             lag = max(lag, float(np.linalg.norm(self._pusher_xy() - targets[-1])))
         # 2) hold the pusher still; at rest = the object frame's floor point and yaw below the

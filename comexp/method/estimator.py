@@ -61,6 +61,11 @@ class EstimatorSettings:
     C_bw_px: float = 10.0
     n_push: int = 5
     rotation_source: str = "vision"  # vision | oracle
+    # vision with frames: once the pusher stops, a frame is tracked when the predicted turn
+    # since the last one reaches track_step_deg, or track_gap_s after it at the latest
+    # (`PoseTracker.wants_frame`); track_step_deg = 0: every camera frame
+    track_step_deg: float = 10.0
+    track_gap_s: float = 0.1
     # --- readings of the paper's ambiguities -----------------------------------------------
     d_metric: str = "sine"  # score term d: sine of the angle (Alg. 1 line 5) | distance_px (Eq. 1)
     d_signed: bool = False  # score uses signed d (literal) instead of |d|
@@ -92,6 +97,10 @@ class EstimatorSettings:
             raise ValueError(f"theta_T_deg must be finite and >= 0, got {self.theta_T_deg!r}")
         if not (np.isfinite(self.C_bw_px) and self.C_bw_px > 0):
             raise ValueError(f"C_bw_px must be finite and > 0, got {self.C_bw_px!r}")
+        if not (math.isfinite(self.track_step_deg) and self.track_step_deg >= 0):
+            raise ValueError(f"track_step_deg must be finite and >= 0, got {self.track_step_deg!r}")
+        if not (math.isfinite(self.track_gap_s) and self.track_gap_s > 0):
+            raise ValueError(f"track_gap_s must be finite and > 0, got {self.track_gap_s!r}")
         if self.n_push < 1:
             raise ValueError(f"n_push must be >= 1, got {self.n_push}")
         if self.contact_spacing_px <= 0:

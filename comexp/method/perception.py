@@ -551,6 +551,26 @@ class PoseTracker:
         rate = (y1 - y0) / (t1 - t0) if t1 > t0 else 0.0
         return y1 + rate * (t_s - t1)
 
+    def wants_frame(self, t_s: float, driving: bool, step_deg: float, gap_s: float) -> bool:
+        """Whether the camera frame `t_s` into the push is worth tracking (skipped ones are
+        not even rendered in simulation: `Simulator.push(frame_wanted=...)`).
+
+        While the pusher drives, every frame: the fastest turns of the study (40-55 deg within
+        a 75 ms push on a high-friction floor) happen in contact, where the rate changes
+        abruptly. Once the pusher stops, the object slides under floor friction alone, and a
+        frame is needed when the constant-rate prediction from the last two frames has it
+        turned `step_deg` since the last one, or `gap_s` after it at the latest: friction
+        can also speed a turn up (the load shifts as the object slides), and what it adds
+        grows with the square of the gap (docs/method.md measures both). `step_deg` <= 0:
+        every frame.
+        """
+        if driving or step_deg <= 0.0 or len(self._history) < 2:
+            return True
+        t1, y1 = self._history[-1]
+        if t_s - t1 >= gap_s - 1e-9:
+            return True
+        return abs(self.predicted_yaw(t_s) - y1) >= math.radians(step_deg)
+
     def track(self, view: TrackingView, t_s: float, max_iter: int = 8) -> PoseFit:
         """Pose in a tracking frame taken `t_s` into the push (after `begin_push`).
 
