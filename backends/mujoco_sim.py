@@ -38,6 +38,12 @@ import shapely.affinity
 import shapely.ops
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+# Mesa's software rasteriser (llvmpipe, what EGL gives on a machine without a GPU) hands each
+# render to worker threads; for our small depth renders the hand-off costs more CPU than it
+# saves, and a study keeps every core busy with its own workers anyway. 0 = rasterise in the
+# calling thread: the same pixels bit for bit (200 window and full renders over the 20
+# objects compared), half the CPU per window render (docs/performance.md). A GPU ignores it.
+os.environ.setdefault("LP_NUM_THREADS", "0")
 
 import mujoco  # noqa: E402
 
