@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import io
 import itertools
+import json
 import math
 from pathlib import Path
 
@@ -206,6 +207,22 @@ def test_estimator_variants_are_not_pooled_and_labels_name_them(tmp_path: Path) 
         # a filter to one variant: its label still names it
         (one,) = condition_tables(db, EpisodeFilter(rotation_source="oracle"))
         assert "rotation oracle" in one.condition.label() and one.overall.mean == 3.0
+
+
+def test_rows_stored_before_the_frame_rule_are_labelled_every_frame() -> None:
+    """A row stored before `track_step_deg` existed tracked every frame: its label says so,
+    so that it is not shown under the same label as a row with the new default."""
+    from comexp.results.identity import canonical_json
+    from comexp.results.reports import Condition, estimator_changes
+
+    new = json.loads(canonical_json(EstimatorSettings()))
+    old = {k: v for k, v in new.items() if k not in ("track_step_deg", "track_gap_s")}
+    assert estimator_changes(json.dumps(new)) == {}
+    assert estimator_changes(json.dumps(old)) == {"track_step_deg": 0}
+    core = dict(backend="planar", floor="iso", mu_floor_x=0.1, mu_floor_y=0.1, mu_pusher=0.1)
+    core.update(speed_cm_s=40.0, izz_scale=1.0)
+    labels = {Condition.of({**core, "estimator": json.dumps(e)}).label() for e in (new, old)}
+    assert len(labels) == 2 and any("track_step_deg=0" in t for t in labels)
 
 
 def test_group_episodes_pools_only_what_it_is_told(study_db: ResultsDB) -> None:

@@ -115,12 +115,19 @@ def _sortable(v: Any) -> tuple[int, Any]:
     return (3, str(v))
 
 
+# What an episode stored before a knob existed ran with, where that differs from the knob's
+# default: such rows are labelled with it, so that they are told apart from new rows.
+LEGACY_ESTIMATOR: dict[str, Any] = {"track_step_deg": 0}  # before f0e1013: every frame
+
+
 def estimator_changes(estimator_json: str) -> dict[str, Any]:
-    """The estimator settings that differ from comexp's defaults (keys added later count)."""
+    """The estimator settings that differ from comexp's defaults (keys added later count;
+    a key missing from an older row counts as its `LEGACY_ESTIMATOR` value, if any)."""
     try:
         est = json.loads(estimator_json)
     except (TypeError, ValueError):
         return {"estimator": estimator_json}
+    est = {**LEGACY_ESTIMATOR, **est}
     return {k: v for k, v in sorted(est.items()) if _DEFAULT_ESTIMATOR.get(k, object()) != v}
 
 
