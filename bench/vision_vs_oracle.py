@@ -12,6 +12,9 @@ ok in each, the two means and their difference (vision - oracle), the mean of th
 differences over the episodes ok in both (paired by object, CoM and every grid value) with
 a 95% bootstrap interval over objects, and the share of pushes turning more than 1 deg whose
 measured rotation has the true sign. Then the same over the whole study.
+
+`--reference-source vision` compares two vision runs instead (e.g. another tracking rule:
+`--vision NEW --oracle OLD --reference-source vision`); jobs only in one database are left out.
 """
 
 from __future__ import annotations
@@ -37,9 +40,11 @@ def load(url: str, source: str) -> tuple[dict[tuple, dict[str, Any]], list[dict[
     cols = [EPISODES.c[c] for c in (*PAIR, "status", "error_cm", "rotation_source", "id")]
     with ResultsDB(url, readonly=True) as db, db.engine.connect() as conn:
         eps = [dict(m) for m in conn.execute(select(*cols)).mappings()]
-        q = select(EPISODES.c.id, PUSHES.c.rotation_deg, PUSHES.c.rotation_true_deg).join(
-            PUSHES, PUSHES.c.episode_id == EPISODES.c.id
-        )
+        q = select(
+            EPISODES.c.id,
+            *(PUSHES.c[c] for c in ("k", "rotation_deg", "rotation_true_deg", "n_frames")),
+            *(PUSHES.c[c] for c in ("contact_x_cm", "contact_y_cm", "dir_x", "dir_y", "decision")),
+        ).join(PUSHES, PUSHES.c.episode_id == EPISODES.c.id)
         pushes = [dict(m) for m in conn.execute(q).mappings()]
     eps = [e for e in eps if e["rotation_source"] == source]
     if not eps:
@@ -92,16 +97,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--vision", required=True, help="file path or SQLAlchemy URL")
     ap.add_argument("--oracle", required=True, help="file path or SQLAlchemy URL")
+    ap.add_argument(
+        "--reference-source",
+        default="oracle",
+        choices=("oracle", "vision"),
+        help="the rotation source of the --oracle database's episodes",
+    )
     args = ap.parse_args()
     vis, vis_pushes = load(args.vision, "vision")
-    ora, _ = load(args.oracle, "oracle")
+    ora, ora_pushes = load(args.oracle, args.reference_source)
     missing = set(vis) ^ set(ora)
     if missing:
         print(f"note: {len(missing)} episodes are in one database only (left out)")
     keys = sorted(set(vis) & set(ora), key=repr)
-    push_of: dict[int, list[dict]] = defaultdict(list)
-    for p in vis_pushes:
-        push_of[p["id"]].append(p)
+    push_of: dict[tuple[str, int], list[dict]] = defaultdict(list)
+    for side, pushes in (("v", vis_pushes), ("o", ora_pushes)):
+        for p in sorted(pushes, key=lambda p: p["k"]):
+            push_of[(side, p["id"])].append(p)
     jobs: dict[tuple, list[tuple]] = defaultdict(list)
     for k in keys:
         v = vis[k]
@@ -114,7 +126,8 @@ def main() -> None:
         out.append(table_row(f"{job[0]} {job[1]} {fmt_num(job[2])} cm/s", ks, vis, ora, push_of))
     out.append(table_row("**whole study**", everything, vis, ora, push_of))
     head = ["job", "ok (vision / oracle)", "vision cm", "oracle cm", "difference cm"]
-    head += ["paired difference cm [95% CI]", "sign right (|true| > 1 deg)"]
+    head += ["paired difference cm [95% CI]", "sign right (|true| > 1 deg)", "frames per push"]
+    head += ["episodes choosing other pushes"]
     print(markdown_table(head, out))
 
 
@@ -122,8 +135,15 @@ def table_row(label: str, ks: list[tuple], vis, ora, push_of) -> list:
     v = [vis[k] for k in ks]
     o = [ora[k] for k in ks]
     paired = [(a, b) for a, b in zip(v, o, strict=True) if a["status"] == b["status"] == "ok"]
-    pushes = [p for e in v for p in push_of[e["id"]]]
-    return row(label, v, o, paired, pushes)
+    pushes = [p for e in v for p in push_of[("v", e["id"])]]
+    frames = statistics.fmean(p["n_frames"] for p in pushes) if pushes else float("nan")
+    choice = ("contact_x_cm", "contact_y_cm", "dir_x", "dir_y", "decision")
+    other = sum(
+        [tuple(p[c] for c in choice) for p in push_of[("v", a["id"])]]
+        != [tuple(p[c] for c in choice) for p in push_of[("o", b["id"])]]
+        for a, b in zip(v, o, strict=True)
+    )
+    return [*row(label, v, o, paired, pushes), f"{frames:.1f}", f"{other} of {len(v)}"]
 
 
 if __name__ == "__main__":
