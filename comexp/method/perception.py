@@ -560,8 +560,9 @@ class PoseTracker:
         abruptly. Once the pusher stops, the object slides under floor friction alone, and a
         frame is needed when the constant-rate prediction from the last two frames has it
         turned `step_deg` since the last one, or `gap_s` after it at the latest: friction
-        can also speed a turn up (the load shifts as the object slides), and what it adds
-        grows with the square of the gap (docs/method.md measures both). `step_deg` <= 0:
+        can also speed a turn up (the load shifts as the object slides), and an angular
+        acceleration alpha the prediction misses adds alpha gap^2 / 2 (docs/method.md
+        measures the turn beyond the prediction with and without the cap). `step_deg` <= 0:
         every frame.
         """
         if driving or step_deg <= 0.0 or len(self._history) < 2:
