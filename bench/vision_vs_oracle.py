@@ -10,8 +10,9 @@ estimator.rotation_source=oracle db=...`: the same episodes (same physics, CoMs 
 only the rotation the estimator is given differs. Per job (backend, floor, speed): episodes
 ok in each, the two means and their difference (vision - oracle), the mean of the paired
 differences over the episodes ok in both (paired by object, CoM and every grid value) with
-a 95% bootstrap interval over objects, and the share of pushes turning more than 1 deg whose
-measured rotation has the true sign. Then the same over the whole study.
+a 95% interval from the claims' two-level bootstrap (objects, then CoMs), and the share of
+pushes turning more than 1 deg whose measured rotation has the true sign. Then the same
+over the whole study.
 
 `--reference-source vision` compares two vision runs instead (e.g. another tracking rule:
 `--vision NEW --oracle OLD --reference-source vision`); jobs only in one database are left out.
@@ -24,9 +25,9 @@ import statistics
 from collections import defaultdict
 from typing import Any
 
-import numpy as np
 from sqlalchemy import select
 
+from comexp.results.claims import _bootstrap
 from comexp.results.reports import CORE_COLUMNS, fmt_num, markdown_table
 from comexp.results.schema import EPISODES, PUSHES
 from comexp.results.store import ResultsDB
@@ -59,26 +60,14 @@ def load(url: str, source: str) -> tuple[dict[tuple, dict[str, Any]], list[dict[
     return by_key, [p for p in pushes if p["id"] in ids]
 
 
-def bootstrap_ci(diffs: dict[str, list[float]], n: int = 2000, seed: int = 0) -> tuple:
-    """95% interval of the mean paired difference, resampling objects (then their episodes)."""
-    rng = np.random.default_rng(seed)
-    objs = list(diffs)
-    means = []
-    for _ in range(n):
-        pick = rng.integers(len(objs), size=len(objs))
-        xs = np.concatenate([rng.choice(diffs[objs[i]], size=len(diffs[objs[i]])) for i in pick])
-        means.append(xs.mean())
-    return tuple(np.quantile(means, [0.025, 0.975]))
-
-
 def row(label: str, vis: list[dict], ora: list[dict], paired, pushes: list[dict]) -> list:
     ok_v = [e["error_cm"] for e in vis if e["status"] == "ok"]
     ok_o = [e["error_cm"] for e in ora if e["status"] == "ok"]
-    diffs: dict[str, list[float]] = defaultdict(list)
+    # the study's own interval (`comexp-db claims`): two-level bootstrap, objects then CoMs
+    diffs: dict = defaultdict(lambda: defaultdict(list))
     for v, o in paired:
-        diffs[v["object"]].append(v["error_cm"] - o["error_cm"])
-    flat = [d for ds in diffs.values() for d in ds]
-    lo, hi = bootstrap_ci(diffs)
+        diffs[(v["object"], v["com_index"])]["d"].append(v["error_cm"] - o["error_cm"])
+    mean, lo, hi, n = _bootstrap(diffs, lambda m: m["d"], seed=0)
     turning = [p for p in pushes if abs(p["rotation_true_deg"]) > 1.0]
     right = sum((p["rotation_deg"] > 0) == (p["rotation_true_deg"] > 0) for p in turning)
     mv, mo = statistics.fmean(ok_v), statistics.fmean(ok_o)
@@ -88,7 +77,7 @@ def row(label: str, vis: list[dict], ora: list[dict], paired, pushes: list[dict]
         f"{mv:.3f}",
         f"{mo:.3f}",
         f"{mv - mo:+.3f}",
-        f"{statistics.fmean(flat):+.3f} [{lo:+.3f}, {hi:+.3f}] (n {len(flat)})",
+        f"{mean:+.3f} [{lo:+.3f}, {hi:+.3f}] (n {n})",
         f"{100.0 * right / max(1, len(turning)):.2f}% of {len(turning)}",
     ]
 
