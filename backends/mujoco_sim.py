@@ -55,6 +55,7 @@ from comexp.experiment.simulator import (  # noqa: E402
     Simulator,
     crop_camera,
     object_window_px,
+    outline_radius_m,
 )
 from comexp.method.scene import (  # noqa: E402
     GRAVITY_M_S2,
@@ -501,6 +502,10 @@ class MujocoSimulator(Simulator):
             else None
         )
         self._com_local = np.array([scene.obj.com_m[0], scene.obj.com_m[1], scene.obj.height_m / 2])
+        # no point of the object is farther than this from its origin, nor of the pusher from
+        # its axis: beyond their sum (+ 1 mm) the two cannot touch (_pusher_touching)
+        r_obj = math.hypot(outline_radius_m(scene.obj.outline_m), scene.obj.height_m)
+        self._reach_m = r_obj + scene.pusher.radius_m + 1e-3
         self._pushed = False
         mujoco.mj_resetData(m, d)
         pose = scene.initial_pose
@@ -630,14 +635,17 @@ class MujocoSimulator(Simulator):
         rot = np.empty(9)
         mujoco.mju_quat2Mat(rot, d.qpos[q + 3 : q + 7])
         rot = rot.reshape(3, 3)
-        w = rot @ d.qvel[v + 3 : v + 6]  # free joint: angular velocity is in the body frame
-        v_com = d.qvel[v : v + 3] + np.cross(w, rot @ self._com_local)
+        w0, w1, w2 = (rot @ d.qvel[v + 3 : v + 6]).tolist()  # free joint: body-frame omega
+        r0, r1, r2 = (rot @ self._com_local).tolist()
+        # v_com = v_origin + w x r, in scalars (the same operations as np.cross, ~10x cheaper)
+        vx = float(d.qvel[v]) + (w1 * r2 - w2 * r1)
+        vy = float(d.qvel[v + 1]) + (w2 * r0 - w0 * r2)
         yaw = math.atan2(rot[1, 0], rot[0, 0])
         dt = self.settings.timestep_s
-        imp = self._fric.impulse(np.array([v_com[0], v_com[1], w[2]]), yaw, dt, self._pushed)
-        f = imp / dt
+        imp = self._fric.impulse(np.array([vx, vy, w2]), yaw, dt, self._pushed).tolist()
+        fx, fy, tz = imp[0] / dt, imp[1] / dt, imp[2] / dt
         z = float(d.xipos[self._obj_body, 2])  # CoM height above the floor
-        d.xfrc_applied[self._obj_body] = (f[0], f[1], 0.0, z * f[1], -z * f[0], f[2])
+        d.xfrc_applied[self._obj_body] = (fx, fy, 0.0, z * fy, -z * fx, tz)
 
     def _obj_quat(self) -> np.ndarray:
         q = self._obj_qadr
@@ -647,6 +655,9 @@ class MujocoSimulator(Simulator):
         d, n, pg = self.data, self.data.ncon, self._pusher_geom
         if n == 0:
             return False
+        q, p = self._obj_qadr, self._px_qadr
+        if math.hypot(d.qpos[p] - d.qpos[q], d.qpos[p + 1] - d.qpos[q + 1]) > self._reach_m:
+            return False  # too far apart to touch: skip reading the contact list (~10x dearer)
         g = d.contact.geom[:n]
         return bool(np.any(((g[:, 0] == pg) | (g[:, 1] == pg)) & (d.contact.dist[:n] < 0)))
 

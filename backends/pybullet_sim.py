@@ -52,6 +52,7 @@ from comexp.method.scene import (
     ObjectState,
     SceneSpec,
     SimSettings,
+    tilt_deg,
 )
 
 
@@ -420,16 +421,17 @@ class PybulletSimulator(Simulator):
         v, w = pb.getBaseVelocity(self._object, physicsClientId=c)
         yaw = pb.getEulerFromQuaternion(quat)[2]
         dt = self.settings.timestep_s
-        imp = self._fric.impulse(np.array([v[0], v[1], w[2]]), yaw, dt, self._pushed)
-        if not imp.any():
+        ix, iy, iz = self._fric.impulse(
+            np.array([v[0], v[1], w[2]]), yaw, dt, self._pushed
+        ).tolist()
+        if ix == 0.0 and iy == 0.0 and iz == 0.0:
             return
-        f = imp / dt
         pb.applyExternalForce(
-            self._object, -1, [f[0], f[1], 0.0], [com[0], com[1], 0.0], pb.WORLD_FRAME,
+            self._object, -1, [ix / dt, iy / dt, 0.0], [com[0], com[1], 0.0], pb.WORLD_FRAME,
             physicsClientId=c,
         )  # fmt: skip
         pb.applyExternalTorque(
-            self._object, -1, [0.0, 0.0, f[2]], pb.WORLD_FRAME, physicsClientId=c
+            self._object, -1, [0.0, 0.0, iz / dt], pb.WORLD_FRAME, physicsClientId=c
         )
 
     def _teleport_pusher(self, xy: Sequence[float]) -> None:
@@ -474,17 +476,21 @@ class PybulletSimulator(Simulator):
         com, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
         v_com, w = pb.getBaseVelocity(self._object, physicsClientId=c)
         rot = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
-        r = rot @ self._com_local  # origin -> CoM, world
-        origin = np.asarray(com) - r
-        v = np.asarray(v_com) - np.cross(np.asarray(w), r)
+        r0, r1, r2 = (rot @ self._com_local).tolist()  # origin -> CoM, world
+        w0, w1, w2 = w
         roll, pitch, yaw = pb.getEulerFromQuaternion(quat)
+        # origin = com - r, v = v_com - w x r: the operations of np.cross, in scalars
         return ObjectState(
-            position_m=(float(origin[0]), float(origin[1]), float(origin[2])),
+            position_m=(com[0] - r0, com[1] - r1, com[2] - r2),
             roll_rad=float(roll),
             pitch_rad=float(pitch),
             yaw_rad=float(yaw),
-            linear_velocity_m_s=(float(v[0]), float(v[1]), float(v[2])),
-            angular_velocity_rad_s=(float(w[0]), float(w[1]), float(w[2])),
+            linear_velocity_m_s=(
+                v_com[0] - (w1 * r2 - w2 * r1),
+                v_com[1] - (w2 * r0 - w0 * r2),
+                v_com[2] - (w0 * r1 - w1 * r0),
+            ),
+            angular_velocity_rad_s=(float(w0), float(w1), float(w2)),
         )
 
     def render_depth(self) -> DepthImage:
@@ -554,11 +560,19 @@ class PybulletSimulator(Simulator):
         for tx, ty in targets:
             self._command_pusher((tx, ty))
             self._step_once()
-            if not touched and pb.getContactPoints(self._pusher, self._object, physicsClientId=c):
-                touched = True
+            if not touched:
+                # with the friction model, _step_once has just asked Bullet the same question
+                touched = (
+                    self._pushed
+                    if self._fric is not None
+                    else bool(pb.getContactPoints(self._pusher, self._object, physicsClientId=c))
+                )
             if self.trace is not None:
                 self.trace.append(self.object_state())
-        return touched, self.object_state().tilt_deg
+        # the tilt alone (the protocol reads the whole state itself right after)
+        _, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
+        roll, pitch, _ = pb.getEulerFromQuaternion(quat)
+        return touched, tilt_deg(roll, pitch)
 
     def close(self) -> None:
         if self._cid >= 0:

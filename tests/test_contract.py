@@ -527,6 +527,52 @@ def test_leaving_the_view_is_reported(sim):
     assert out.status is PushStatus.LEFT_VIEW
 
 
+def test_the_view_shortcut_changes_no_outcome(sim, monkeypatch):
+    """`surely_in_view` only spares the exact check: the same pushes (one of them leaving the
+    view) give the same outcomes, to the bit, with it switched off."""
+    from comexp.experiment import simulator as simulator_mod
+
+    def pushes():
+        outs = []
+        for pose in (Pose2D(0.0, 0.0, 0.4), Pose2D(0.24, 0.0, 0.0)):
+            scene = SceneSpec(FloorSpec(0.1, 0.1), _box(com=(0.01, -0.005)), initial_pose=pose)
+            sim.build(scene)
+            outs.append(_push_left_face(sim, scene, 0.012, 0.4))
+        return outs
+
+    with_shortcut = pushes()
+    assert with_shortcut[1].status is PushStatus.LEFT_VIEW
+    monkeypatch.setattr(simulator_mod, "surely_in_view", lambda *a: False)
+    assert pushes() == with_shortcut
+
+
+def test_surely_in_view_never_contradicts_the_exact_check():
+    """Random objects, poses over and beyond the image's edge: whenever the cheap test says
+    "inside", every corner projects inside, and the verdict with it is the verdict without."""
+    from comexp.experiment.simulator import classify_state, outline_radius_m, surely_in_view
+    from comexp.method.scene import CameraSpec, ObjectState, SimSettings
+
+    camera, settings = CameraSpec().model(), SimSettings()
+    rng = np.random.default_rng(7)
+    said_inside = 0
+    for _ in range(3000):
+        n = int(rng.integers(3, 12))
+        a = np.sort(rng.uniform(0, 2 * np.pi, n))
+        outline = np.stack([np.cos(a), np.sin(a)], axis=1) * rng.uniform(0.01, 0.08, (n, 1))
+        state = ObjectState(
+            (float(rng.uniform(-0.4, 0.4)), float(rng.uniform(-0.4, 0.4)), 0.0),
+            0.0, 0.0, float(rng.uniform(-np.pi, np.pi)), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0),
+        )  # fmt: skip
+        r = outline_radius_m(outline)
+        exact = classify_state(state, outline, camera, settings)
+        assert classify_state(state, outline, camera, settings, r) == exact
+        if surely_in_view(state.position_m[0], state.position_m[1], r, camera):
+            said_inside += 1
+            assert exact is None
+    assert 500 < said_inside < 2900  # both verdicts were exercised
+    assert surely_in_view(0.0, 0.0, 0.05, camera)
+
+
 def test_start_overlapping_object_is_refused(sim):
     scene = SceneSpec(FloorSpec(0.5, 0.5), _box())
     sim.build(scene)

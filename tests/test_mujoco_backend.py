@@ -166,3 +166,26 @@ def test_renderer_is_reused_across_object_changes(sim):
     again = sim.render_depth().depth_m
     assert sim._renderers[sim._render_key].renderer is renderer  # no new GL context
     assert np.array_equal(first, again)
+
+
+def test_the_pusher_reach_shortcut_changes_no_outcome(sim):
+    """`_pusher_touching` skips the contact list when pusher and object are too far apart to
+    touch; with the shortcut off (infinite reach) the same pushes give the same outcomes, to
+    the bit (the touch flag feeds the friction model's pressure every step)."""
+
+    def pushes(reach_off: bool):
+        outs = []
+        for mu, speed in ((0.1, 0.4), (1.0, 0.04)):
+            obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.5)
+            scene = SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, 0.3))
+            sim.build(scene)
+            if reach_off:
+                sim._reach_m = math.inf
+            contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
+            normal = (math.cos(0.3), math.sin(0.3))
+            outs.append(sim.push(contact_push(contact, normal, 0.03, speed, 0.005)))
+        return outs
+
+    fast = pushes(False)
+    assert all(o.ok and o.contact_made for o in fast)
+    assert pushes(True) == fast

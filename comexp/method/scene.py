@@ -205,6 +205,12 @@ class Pose2D:
         return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
 
 
+def tilt_deg(roll_rad: float, pitch_rad: float) -> float:
+    """Angle between a body's z axis and world z, from its roll and pitch (ZYX Euler)."""
+    c = math.cos(roll_rad) * math.cos(pitch_rad)
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
 @dataclass(frozen=True)
 class ObjectState:
     """Full rigid-body state of the object frame, for evaluation, tests and failure checks."""
@@ -223,8 +229,7 @@ class ObjectState:
     @property
     def tilt_deg(self) -> float:
         """Angle between the object's z axis and world z."""
-        c = math.cos(self.roll_rad) * math.cos(self.pitch_rad)
-        return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+        return tilt_deg(self.roll_rad, self.pitch_rad)
 
     @property
     def is_finite(self) -> bool:

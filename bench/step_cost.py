@@ -1,0 +1,244 @@
+"""What an engine step costs inside a push, and how far an episode is from the engine's floor.
+
+    .venv/bin/python bench/step_cost.py --backend pybullet [--episodes 16] [--speed 40]
+    .venv/bin/python bench/step_cost.py --backend mujoco --speed 4 --floor aniso
+
+Issue 16 asks for an episode within 1.5x of the engine's own floor: its raw steps plus its
+renders, measured in the same run. This script measures, on one in-process worker and the
+job's own episodes (`episode_profile.strided` slice, vision and the default camera):
+
+- **in-push cost per step**: `sim.push` time, minus the tracking frames rendered inside
+  it, over `PushOutcome.steps`;
+- **the engine's raw step**: the engine's own step call alone, no Python of ours around it,
+  on each episode's built scene (object resting, pusher parked): pybullet `stepSimulation`,
+  MuJoCo `mj_step(m, d, n)`;
+- **the friction model's kernel**: every `FootprintFriction.impulse` input of the same
+  episodes recorded in a second, identical pass (builds are full resets, so the pass repeats
+  the first) and replayed through the compiled kernel alone;
+- the rest of the step, **our Python around the engine** (pusher command, state reads, force
+  application, contact query, the protocol's checks): in-push minus raw minus kernel.
+
+Every time is the process's CPU time (`time.process_time`), not wall time: these machines
+are shared, and a bench beside a study would otherwise count the study's turns as its own.
+
+It prints the floor (steps x raw + renders), the episode's ratio to it, and what a step loop
+compiled whole (engine step and kernel with no Python between steps) would leave: steps x
+(raw + kernel) + renders + everything outside physics, as a projection, labelled so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from episode_profile import engine_stdout_silenced, job_specs, source_digest, strided
+
+from comexp.backends import floor_friction as ff
+from comexp.experiment import episode as episode_mod
+from comexp.experiment.episode import EpisodeSpec, run_episode
+from comexp.experiment.simulator import Simulator, make_simulator
+
+
+class Timers:
+    """CPU time and calls of the wrapped methods, and the steps of the pushes."""
+
+    def __init__(self) -> None:
+        self.s: dict[str, float] = {"push": 0.0, "render": 0.0, "frame": 0.0}
+        self.n: dict[str, int] = {"push": 0, "render": 0, "frame": 0}
+        self.steps = 0
+
+    def wrap(self, sim: Simulator, name: str, key: str) -> None:
+        fn = getattr(sim, name)
+
+        def timed(*a: Any, **k: Any) -> Any:
+            t0 = time.process_time()
+            out = fn(*a, **k)
+            self.s[key] += time.process_time() - t0
+            self.n[key] += 1
+            if key == "push":
+                self.steps += out.steps
+            return out
+
+        setattr(sim, name, timed)
+
+
+def raw_step_s(sim: Simulator, spec: EpisodeSpec, n: int) -> float:
+    """Seconds per step of the engine's own step call on the episode's built scene (best of
+    three runs of n steps). Reaches into the backend for its engine handle: this is the one
+    number that must not include the backend's Python."""
+    sim.build(episode_mod.build_scene(spec))
+    best = float("inf")
+    if sim.name == "pybullet":
+        import pybullet as pb
+
+        cid = sim._cid  # type: ignore[attr-defined]
+        for _ in range(3):
+            t0 = time.process_time()
+            for _ in range(n):
+                pb.stepSimulation(physicsClientId=cid)
+            best = min(best, time.process_time() - t0)
+    elif sim.name == "mujoco":
+        import mujoco
+
+        m, d = sim._require()  # type: ignore[attr-defined]
+        for _ in range(3):
+            t0 = time.process_time()
+            mujoco.mj_step(m, d, n)
+            best = min(best, time.process_time() - t0)
+    else:
+        raise SystemExit(f"no raw engine step for backend {sim.name}")
+    return best / n
+
+
+class ImpulseRecorder:
+    """Patches FootprintFriction to keep every impulse() input, per friction object."""
+
+    def __init__(self) -> None:
+        self.objects: list[tuple[tuple, dict, list]] = []
+        self._init = ff.FootprintFriction.__init__
+        self._impulse = ff.FootprintFriction.impulse
+
+    def __enter__(self) -> ImpulseRecorder:
+        rec, init, impulse = self.objects, self._init, self._impulse
+
+        def patched_init(fr: Any, *a: Any, **k: Any) -> None:
+            init(fr, *a, **k)
+            fr._inputs = []
+            rec.append((a, k, fr._inputs))
+
+        def patched_impulse(fr: Any, xi_hat: Any, yaw: float, dt: float, pushed: bool) -> Any:
+            fr._inputs.append((np.array(xi_hat, dtype=np.float64), float(yaw), dt, pushed))
+            return impulse(fr, xi_hat, yaw, dt, pushed)
+
+        ff.FootprintFriction.__init__ = patched_init  # type: ignore[method-assign]
+        ff.FootprintFriction.impulse = patched_impulse  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        ff.FootprintFriction.__init__ = self._init  # type: ignore[method-assign]
+        ff.FootprintFriction.impulse = self._impulse  # type: ignore[method-assign]
+
+    def replay_s(self) -> tuple[float, int]:
+        """Seconds in the compiled kernel alone over every recorded input, and the count."""
+        total, count = 0.0, 0
+        for a, k, inputs in self.objects:
+            fr = ff.FootprintFriction(*a, **k)
+            g, fs, nrm, dxw, dyw = fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw
+            t0 = time.process_time()
+            for xi_hat, yaw, dt, pushed in inputs:
+                ff.impulse_kernel(g, fs, nrm, dxw, dyw, xi_hat, yaw, dt, pushed)
+            total += time.process_time() - t0
+            count += len(inputs)
+        return total, count
+
+
+def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[str, Any]:
+    specs = strided(job_specs(backend, floor, speed), n)
+    sim = make_simulator(backend)
+    out: dict[str, Any] = {"backend": backend, "episodes": len(specs), "speed": speed,
+                           "floor": floor, "source": source_digest(backend)}  # fmt: skip
+    try:
+        first: dict[str, EpisodeSpec] = {}
+        for s in specs:
+            first.setdefault(s.object, s)
+        for s in first.values():  # warm-up: one-offs per object (renderers, JIT)
+            run_episode(s, sim)
+        t = Timers()
+        t.wrap(sim, "push", "push")
+        t.wrap(sim, "render_depth", "render")
+        t.wrap(sim, "render_tracking_depth", "frame")
+        walls = []
+        for s in specs:
+            t0 = time.process_time()
+            run_episode(s, sim)
+            walls.append(time.process_time() - t0)
+        for name in ("push", "render_depth", "render_tracking_depth"):
+            delattr(sim, name)  # back to the class's methods
+        with ImpulseRecorder() as rec:
+            for s in specs:
+                run_episode(s, sim)
+        kernel_s, kernel_n = rec.replay_s()
+        raws = [raw_step_s(sim, s, raw_n) for s in strided(specs, min(4, len(specs)))]
+    finally:
+        sim.close()
+    ne = len(specs)
+    physics_s = t.s["push"] - t.s["frame"]
+    out.update(
+        episode_ms=1e3 * sum(walls) / ne,
+        median_ms=1e3 * statistics.median(walls),
+        steps_per_ep=t.steps / ne,
+        step_us=1e6 * physics_s / t.steps,
+        raw_us=1e6 * statistics.median(raws),
+        kernel_us=1e6 * kernel_s / max(t.steps, 1),
+        kernel_steps=kernel_n,
+        render_ms=1e3 * (t.s["render"] + t.s["frame"]) / ne,
+        renders_per_ep=t.n["render"] / ne,
+        frames_per_ep=t.n["frame"] / ne,
+    )
+    out["python_us"] = out["step_us"] - out["raw_us"] - out["kernel_us"]
+    out["physics_ms"] = 1e3 * physics_s / ne
+    out["other_ms"] = out["episode_ms"] - out["physics_ms"] - out["render_ms"]
+    out["floor_ms"] = out["steps_per_ep"] * out["raw_us"] / 1e3 + out["render_ms"]
+    out["compiled_ms"] = (
+        out["steps_per_ep"] * (out["raw_us"] + out["kernel_us"]) / 1e3
+        + out["render_ms"]
+        + out["other_ms"]
+    )
+    return out
+
+
+def report(o: dict[str, Any]) -> None:
+    print(
+        f"== {o['backend']} (source {o['source']}), floor {o['floor']}, {o['speed']:g} cm/s: "
+        f"{o['episodes']} episodes, one worker; load {os.getloadavg()[0]:.2f}"
+    )
+    print(
+        f"episode             {o['episode_ms']:.0f} ms mean, {o['median_ms']:.0f} median; "
+        f"{o['steps_per_ep']:.0f} steps, {o['renders_per_ep']:.1f} images + "
+        f"{o['frames_per_ep']:.1f} tracking frames"
+    )
+    st = o["step_us"]
+    print(f"step inside a push  {st:.1f} us  (push CPU time minus its frames, per step)")
+    for label, key in (
+        ("  engine raw step", "raw_us"),
+        ("  friction kernel", "kernel_us"),
+        ("  our Python", "python_us"),
+    ):
+        print(f"{label:<20}{o[key]:.1f} us  ({100 * o[key] / st:.0f}%)")
+    print(
+        f"episode split       physics {o['physics_ms']:.0f} ms, renders {o['render_ms']:.0f} "
+        f"ms, the rest (perception, estimator, builds) {o['other_ms']:.0f} ms"
+    )
+    print(
+        f"engine floor        {o['floor_ms']:.0f} ms (raw steps + renders): episode "
+        f"{o['episode_ms'] / o['floor_ms']:.2f}x the floor (target <= 1.5)"
+    )
+    print(
+        f"projection          step loop compiled whole (raw + kernel per step): "
+        f"{o['compiled_ms']:.0f} ms, {o['compiled_ms'] / o['floor_ms']:.2f}x the floor, "
+        f"{o['episode_ms'] / o['compiled_ms']:.2f}x faster than now"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--backend", choices=("pybullet", "mujoco"), default="pybullet")
+    ap.add_argument("--episodes", type=int, default=16)
+    ap.add_argument("--speed", type=float, default=40.0, help="cm/s")
+    ap.add_argument("--floor", choices=("iso", "aniso"), default="iso")
+    ap.add_argument("--raw-steps", type=int, default=2000, help="steps per raw-rate run")
+    a = ap.parse_args(argv)
+    with engine_stdout_silenced():
+        o = measure(a.backend, a.episodes, a.speed, a.floor, a.raw_steps)
+    report(o)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
