@@ -56,23 +56,37 @@ from comexp.method.perception import PoseTracker
 PHASES = ("physics (sim.push)", "scene build", "render", "perception", "estimator")
 
 
-def job_specs(
-    backend: str, floor: str = "iso", speed: float = 40.0, overrides: Sequence[str] = ()
-) -> list[EpisodeSpec]:
-    """All episodes of one job, expanded exactly as `comexp` does (Hydra config, object
-    configs, grid order). The database setting points at a temp dir so nothing is probed
-    or created under results/."""
+def _job(backend: str, floor: str, speed: float, overrides: Sequence[str]) -> Any:
+    """The job `comexp` would prepare (Hydra config, validation, objects). The database
+    setting points at a temp dir so nothing is probed or created under results/."""
     from hydra import compose, initialize_config_module
 
     from comexp.experiment.config import prepare_job
-    from comexp.experiment.grid import expand_grid
 
     db = os.path.join(tempfile.gettempdir(), "comexp-bench-unused.db")
     args = [f"backend={backend}", f"floor={floor}", f"speed={speed:g}", f"db={db}", *overrides]
     with initialize_config_module("comexp.conf", version_base="1.3"):
         cfg = compose("config", overrides=args, return_hydra_config=True)
-    job = prepare_job(cfg)
+    return prepare_job(cfg)
+
+
+def job_specs(
+    backend: str, floor: str = "iso", speed: float = 40.0, overrides: Sequence[str] = ()
+) -> list[EpisodeSpec]:
+    """All episodes of one job, expanded exactly as `comexp` does (grid order)."""
+    from comexp.experiment.grid import expand_grid
+
+    job = _job(backend, floor, speed, overrides)
     return expand_grid(job.cfg, job.objects, estimator=job.estimator)
+
+
+def job_backend_options(
+    backend: str, floor: str = "iso", speed: float = 40.0, overrides: Sequence[str] = ()
+) -> dict[str, Any]:
+    """The backend options `comexp` hands its workers for this job (`EpisodePool`'s
+    `backend_options`): without them a worker runs another physics than the episodes name,
+    and refuses every one (`physics_mismatch`)."""
+    return _job(backend, floor, speed, overrides).cfg.backend.options()
 
 
 def strided(specs: Sequence[EpisodeSpec], n: int) -> list[EpisodeSpec]:

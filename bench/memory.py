@@ -181,7 +181,7 @@ def _mb(kb: int) -> str:
 def run_job(
     backend: str, floor: str, speed: float, n: int | None, workers: int, interval_s: float
 ) -> dict[str, Any]:
-    from episode_profile import job_specs, strided
+    from episode_profile import job_backend_options, job_specs, strided
 
     from comexp.results.store import ResultsDB
     from comexp.workers.driver import run_and_store
@@ -198,7 +198,8 @@ def run_job(
         try:
             sweep = db.start_sweep(command_line="bench/memory.py")
             ensure_ray(None, workers)
-            pool = EpisodePool(backend, workers)
+            options = job_backend_options(backend, floor, speed)
+            pool = EpisodePool(backend, workers, backend_options=options)
             with pool:
                 worker_pids = [
                     ray_get(s.actor.ready.remote())["pid"]

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
-from episode_profile import job_specs, source_digest, strided
+from episode_profile import job_backend_options, job_specs, source_digest, strided
 from memory import CLK_TCK, cpu_seconds, descendants, proc_name
 
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec
@@ -52,6 +52,7 @@ class Run:
     cpu_ray_s: float
     cpu_machine_s: float  # busy CPU seconds of the whole machine (all users) during the run
     failed: int
+    failures: dict[str, int]  # failure reason -> episodes
     errors: dict[str, float]  # episode key -> error_cm (None for failed), to compare runs
     load: float
 
@@ -104,7 +105,7 @@ def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str)
             db_time += time.perf_counter() - t0
             return n
 
-        pool = EpisodePool(backend, workers)
+        pool = EpisodePool(backend, workers, backend_options=job_backend_options(backend))
         t0 = time.perf_counter()
         pool.start()
         pool_start = time.perf_counter() - t0
@@ -137,6 +138,7 @@ def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str)
         cpu_ray_s=_delta(cpu0, cpu1, others),
         cpu_machine_s=m1 - m0,
         failed=stats.failed,
+        failures=dict(stats.failures),
         errors={episode_key(r.spec): r.error_cm for r in results},
         load=os.getloadavg()[0],
     )
@@ -199,7 +201,7 @@ def report(backend: str, n: int, setup: dict[str, float], runs: list[Run]) -> No
     for r in runs[1:]:
         same = r.errors == base.errors
         print(f"results of {r.workers} workers identical to {base.workers}: {same}")
-    print(f"failed episodes: {', '.join(f'{r.workers}w {r.failed}' for r in runs)}")
+    print(f"failed episodes: {', '.join(f'{r.workers}w {r.failed} {r.failures}' for r in runs)}")
     names = sorted({proc_name(p) for p in descendants(os.getpid())})
     print(f"processes in the tree: {', '.join(names)}")
 

@@ -103,7 +103,7 @@ def surely_in_view(x_m: float, y_m: float, radius_m: float, camera: CameraModel)
     """True when a disc of `radius_m` about the floor point (x, y) projects well inside the
     image, so every outline corner within it does: the protocol checks the view every few
     steps, and this test (a few float operations) spares the exact per-corner projection
-    (numpy on a handful of points, ~20x the cost) on nearly every check. False decides
+    (numpy on a handful of points, ~100x its cost) on nearly every check. False decides
     nothing: the exact test runs. Its margin (1e-6 px, 1e-9 relative on the radius) is far
     above the rounding of either computation, so the verdict is always the exact test's."""
     x0, y0, z0 = camera.position_m
