@@ -37,7 +37,13 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from episode_profile import engine_stdout_silenced, job_specs, source_digest, strided
+from episode_profile import (
+    engine_stdout_silenced,
+    job_backend_options,
+    job_specs,
+    source_digest,
+    strided,
+)
 
 from comexp.backends import floor_friction as ff
 from comexp.experiment import episode as episode_mod
@@ -140,7 +146,7 @@ class ImpulseRecorder:
 
 def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[str, Any]:
     specs = strided(job_specs(backend, floor, speed), n)
-    sim = make_simulator(backend)
+    sim = make_simulator(backend, **job_backend_options(backend, floor, speed))  # the job's physics
     out: dict[str, Any] = {"backend": backend, "episodes": len(specs), "speed": speed,
                            "floor": floor, "source": source_digest(backend)}  # fmt: skip
     try:
