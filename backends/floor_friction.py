@@ -555,6 +555,9 @@ class FootprintFriction:
             sample_hull_o=c(self.sample_hull_o), eps=float(s.smoothing_m_s),
             tol=float(s.newton_tol), itmax=int(s.max_newton), rest_snap=float(s.rest_snap_m_s),
         )  # fmt: skip
+        # a list: every step's input (xi_hat x, y, z, yaw, pushed) is appended to it, by
+        # `impulse` or by a backend's compiled loop (bench/step_cost.py replays them)
+        self.inputs: list[tuple[float, float, float, float, bool]] | None = None
         self.fs = np.zeros(FS_SIZE)
         self.fs[YAW_CACHED] = np.nan
         self.normal = self.pressure.forces(np.zeros(2))
@@ -616,6 +619,8 @@ class FootprintFriction:
         while the pusher holds the object against the friction (it then balances F_f), the
         CoM's height while the object slides free (inertia balances F_f)."""
         xi_hat = np.asarray(xi_hat, dtype=np.float64)
+        if self.inputs is not None:
+            self.inputs.append((*(float(v) for v in xi_hat), float(yaw), bool(pushed)))
         return impulse_kernel(
             self.geo, self.fs, self.normal, self.dxw, self.dyw, xi_hat, float(yaw), float(dt),
             bool(pushed),

@@ -49,13 +49,18 @@ os.environ.setdefault("LP_NUM_THREADS", "0")
 import mujoco  # noqa: E402
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings  # noqa: E402
+from comexp.backends.mujoco_steps import (  # noqa: E402
+    PUSHER_SENSOR,
+    PUSHER_SENSOR_MJCF,
+    push_steps,
+    pusher_touching,
+)
 from comexp.experiment.simulator import (  # noqa: E402
     FLOOR_FRICTION_CHOICES,
     PushStatus,
     Simulator,
     crop_camera,
     object_window_px,
-    outline_radius_m,
 )
 from comexp.method.scene import (  # noqa: E402
     GRAVITY_M_S2,
@@ -66,6 +71,7 @@ from comexp.method.scene import (  # noqa: E402
 )
 
 _PARK_XY_M = (3.0, 3.0)  # far outside the floor and the camera frustum
+_NO_RECORD = np.zeros((0, 5))  # push_steps: no friction inputs recorded
 _UNSTABLE_WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQACC,
     mujoco.mjtWarning.mjWARN_BADQVEL,
@@ -275,6 +281,7 @@ def scene_mjcf(
     </body>
   </worldbody>
   <contact>{"".join(pairs)}</contact>
+  {PUSHER_SENSOR_MJCF}
 </mujoco>
 """
 
@@ -417,9 +424,13 @@ def _quat_to_rpy(q: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
-def _tilt_deg(q: np.ndarray) -> float:
-    """Angle between the body's z axis and world z, from the quaternion alone (cheap)."""
-    c = 1.0 - 2.0 * (float(q[1]) ** 2 + float(q[2]) ** 2)
+def _cos_tilt(q: np.ndarray) -> float:
+    """Cosine of the angle between the body's z axis and world z, from the quaternion alone."""
+    return 1.0 - 2.0 * (float(q[1]) * float(q[1]) + float(q[2]) * float(q[2]))
+
+
+def _tilt_deg_of_cos(c: float) -> float:
+    """The tilt angle of `_cos_tilt`'s cosine (the largest tilt is that of the least cosine)."""
     return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
@@ -492,8 +503,12 @@ class MujocoSimulator(Simulator):
             self._obj_vadr = int(m.jnt_dofadr[m.joint("object").id])
             self._px_qadr = int(m.jnt_qposadr[m.joint("pusher_x").id])
             self._px_vadr = int(m.jnt_dofadr[m.joint("pusher_x").id])
-            self._pusher_geom = m.geom("pusher").id
             self._obj_body = m.body("object").id
+            self._sensor_adr = int(m.sensor_adr[m.sensor(PUSHER_SENSOR).id])
+            d = self.data
+            # MjData's buffers as numpy views (fixed for its life): the compiled step loop
+            # reads and writes them in place (backends/mujoco_steps.py)
+            self._views = (d.qpos, d.qvel, d.xipos, d.xfrc_applied, d.sensordata)
         m, d = self.model, self.data
         fl = scene.floor
         self._fric = (
@@ -502,10 +517,6 @@ class MujocoSimulator(Simulator):
             else None
         )
         self._com_local = np.array([scene.obj.com_m[0], scene.obj.com_m[1], scene.obj.height_m / 2])
-        # no point of the object is farther than this from its origin, nor of the pusher from
-        # its axis: beyond their sum (+ 1 mm) the two cannot touch (_pusher_touching)
-        r_obj = math.hypot(outline_radius_m(scene.obj.outline_m), scene.obj.height_m)
-        self._reach_m = r_obj + scene.pusher.radius_m + 1e-3
         self._pushed = False
         mujoco.mj_resetData(m, d)
         pose = scene.initial_pose
@@ -583,38 +594,47 @@ class MujocoSimulator(Simulator):
         return PushStatus.SIM_UNSTABLE if self._warning_count() > self._warnings0 else None
 
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
-        """Runs of steps at one constant pusher velocity go to MuJoCo as one `mj_step(m, d, n)`:
-        the pusher is heavy enough to coast through them at its set velocity (the object's
-        reaction changes it by < 1e-7 m/s per chunk); before every run it is put back exactly
-        on the commanded path. With `trace` set, steps go one at a time."""
+        """The pusher follows `targets`, one per step, kinematically: before every step (or run
+        of steps) it is put exactly on the commanded path at the commanded velocity, and being
+        heavy it coasts through the step at that velocity (the object's reaction changes it by
+        < 1e-7 m/s per chunk).
+
+        `floor_friction=model`: the whole chunk is one compiled call (`push_steps`: the
+        friction force of every step, mj_step, the touch test). `native`: runs of steps at one
+        constant pusher velocity go to MuJoCo as one `mj_step(m, d, n)`. With `trace` set,
+        steps go one at a time and every step's state is recorded."""
         m, d = self._require()
         dt = self.settings.timestep_s
         sub = self.contact.substeps
         prev = self._pusher_xy()
         targets = np.asarray(targets, dtype=float)
         vel = np.diff(np.vstack([prev[None, :], targets]), axis=0) / dt
+        starts = np.vstack([prev[None, :], targets[:-1]])
         touched = False
-        tilt = 0.0
+        min_cos = 1.0
         i = 0
         n_all = len(targets)
         while i < n_all:
-            j = i + 1
-            if self._fric is None and self.trace is None:
-                # equal within rounding: the path's per-step increments differ in the last
-                # bits, and splitting a run there (with its pusher reset) changed a mu 1 impact's
-                # rotation by 1.9 deg (measured): one run per constant commanded velocity
-                while j < n_all and np.allclose(vel[j], vel[i], rtol=1e-9, atol=1e-12):
-                    j += 1
-            start = prev if i == 0 else targets[i - 1]
-            self._set_pusher(
-                (float(start[0]), float(start[1])), (float(vel[i, 0]), float(vel[i, 1]))
-            )
+            j = n_all if self.trace is None else i + 1
             if self._fric is not None:
-                self._apply_floor_friction()
-            mujoco.mj_step(m, d, (j - i) * sub)
-            self._pushed = self._pusher_touching()
-            touched = touched or self._pushed
-            tilt = max(tilt, _tilt_deg(self._obj_quat()))
+                t, self._pushed, c = self._friction_steps(m, d, starts[i:j], vel[i:j])
+            else:
+                if self.trace is None:
+                    # equal within rounding: the path's per-step increments differ in the
+                    # last bits, and splitting a run there (with its pusher reset) changed a
+                    # mu 1 impact's rotation by 1.9 deg (measured): one run per constant
+                    # commanded velocity
+                    j = i + 1
+                    while j < n_all and np.allclose(vel[j], vel[i], rtol=1e-9, atol=1e-12):
+                        j += 1
+                self._set_pusher(
+                    (float(starts[i, 0]), float(starts[i, 1])), (float(vel[i, 0]), float(vel[i, 1]))
+                )
+                mujoco.mj_step(m, d, (j - i) * sub)
+                t = self._pushed = self._pusher_touching()
+                c = _cos_tilt(self._obj_quat())
+            touched = touched or t
+            min_cos = min(min_cos, c)
             if self.trace is not None:
                 self.trace.append(self.object_state())
             i = j
@@ -623,43 +643,35 @@ class MujocoSimulator(Simulator):
             (float(last[0]), float(last[1])),
             (float(vel[-1, 0]), float(vel[-1, 1])) if n_all else (0.0, 0.0),
         )
-        return touched, tilt
+        return touched, _tilt_deg_of_cos(min_cos)
 
-    def _apply_floor_friction(self) -> None:
-        """`floor_friction=model`: the floor's friction for this step from the footprint model
-        (backends/floor_friction.py), as a force at the floor under the CoM (`xfrc_applied`
-        acts at the CoM: the lever of the floor point adds its moment); MuJoCo's floor contacts
-        are normal-only (condim 1), so its soft friction cone cannot raise the normal force."""
-        d = self.data
-        q, v = self._obj_qadr, self._obj_vadr
-        rot = np.empty(9)
-        mujoco.mju_quat2Mat(rot, d.qpos[q + 3 : q + 7])
-        rot = rot.reshape(3, 3)
-        w0, w1, w2 = (rot @ d.qvel[v + 3 : v + 6]).tolist()  # free joint: body-frame omega
-        r0, r1, r2 = (rot @ self._com_local).tolist()
-        # v_com = v_origin + w x r, in scalars (the same operations as np.cross, ~10x cheaper)
-        vx = float(d.qvel[v]) + (w1 * r2 - w2 * r1)
-        vy = float(d.qvel[v + 1]) + (w2 * r0 - w0 * r2)
-        yaw = math.atan2(rot[1, 0], rot[0, 0])
-        dt = self.settings.timestep_s
-        imp = self._fric.impulse(np.array([vx, vy, w2]), yaw, dt, self._pushed).tolist()
-        fx, fy, tz = imp[0] / dt, imp[1] / dt, imp[2] / dt
-        z = float(d.xipos[self._obj_body, 2])  # CoM height above the floor
-        d.xfrc_applied[self._obj_body] = (fx, fy, 0.0, z * fy, -z * fx, tz)
+    def _friction_steps(
+        self, m: mujoco.MjModel, d: mujoco.MjData, starts: np.ndarray, vels: np.ndarray
+    ) -> tuple[bool, bool, float]:
+        """`push_steps` on this scene: the floor's friction from the footprint model
+        (backends/floor_friction.py) as a force at the floor under the CoM, every step;
+        MuJoCo's floor contacts are normal-only (condim 1), so its soft friction cone cannot
+        raise the normal force. Returns (touched, touching now, least cosine of the tilt)."""
+        qpos, qvel, xipos, xfrc, sensordata = self._views
+        f = self._fric
+        record = _NO_RECORD if f.inputs is None else np.zeros((len(starts), 5))
+        out = push_steps(
+            m._address, d._address, self.contact.substeps, qpos, qvel, xipos, xfrc,
+            sensordata, self._sensor_adr, self._obj_qadr, self._obj_vadr, self._px_qadr,
+            self._px_vadr, self._obj_body, self._com_local, starts, vels, f.geo, f.fs,
+            f.normal, f.dxw, f.dyw, self.settings.timestep_s, self._pushed, record,
+        )  # fmt: skip
+        if f.inputs is not None:
+            f.inputs.extend((x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record.tolist())
+        return out
 
     def _obj_quat(self) -> np.ndarray:
         q = self._obj_qadr
         return self.data.qpos[q + 3 : q + 7]
 
     def _pusher_touching(self) -> bool:
-        d, n, pg = self.data, self.data.ncon, self._pusher_geom
-        if n == 0:
-            return False
-        q, p = self._obj_qadr, self._px_qadr
-        if math.hypot(d.qpos[p] - d.qpos[q], d.qpos[p + 1] - d.qpos[q + 1]) > self._reach_m:
-            return False  # too far apart to touch: skip reading the contact list (~10x dearer)
-        g = d.contact.geom[:n]
-        return bool(np.any(((g[:, 0] == pg) | (g[:, 1] == pg)) & (d.contact.dist[:n] < 0)))
+        """The pusher penetrates the object in the contacts of the last step (its sensor)."""
+        return bool(pusher_touching(self._views[4], self._sensor_adr))
 
     # --- camera --------------------------------------------------------------------------
     def render_depth(self) -> DepthImage:
@@ -740,7 +752,8 @@ class MujocoSimulator(Simulator):
 
 
 # The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "mujoco-3"  # 2: the shared push protocol; 3: compiled footprint friction
+PHYSICS_VERSION = "mujoco-4"  # 2: the shared push protocol; 3: compiled footprint friction;
+# 4: the step loop compiled (its 3x3 products in scalars, not BLAS: last-bit differences)
 ENGINE_DISTRIBUTION = "mujoco"
 PHYSICS_SETTINGS = (DEFAULT_CONTACT, FrictionSettings())
 

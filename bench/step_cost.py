@@ -103,41 +103,37 @@ def raw_step_s(sim: Simulator, spec: EpisodeSpec, n: int) -> float:
 
 
 class ImpulseRecorder:
-    """Patches FootprintFriction to keep every impulse() input, per friction object."""
+    """Patches FootprintFriction to keep every step's friction input, per friction object
+    (`FootprintFriction.inputs`: filled by `impulse` and by MuJoCo's compiled loop alike)."""
 
     def __init__(self) -> None:
         self.objects: list[tuple[tuple, dict, list]] = []
         self._init = ff.FootprintFriction.__init__
-        self._impulse = ff.FootprintFriction.impulse
 
     def __enter__(self) -> ImpulseRecorder:
-        rec, init, impulse = self.objects, self._init, self._impulse
+        rec, init = self.objects, self._init
 
         def patched_init(fr: Any, *a: Any, **k: Any) -> None:
             init(fr, *a, **k)
-            fr._inputs = []
-            rec.append((a, k, fr._inputs))
-
-        def patched_impulse(fr: Any, xi_hat: Any, yaw: float, dt: float, pushed: bool) -> Any:
-            fr._inputs.append((np.array(xi_hat, dtype=np.float64), float(yaw), dt, pushed))
-            return impulse(fr, xi_hat, yaw, dt, pushed)
+            fr.inputs = []
+            rec.append((a, k, fr.inputs))
 
         ff.FootprintFriction.__init__ = patched_init  # type: ignore[method-assign]
-        ff.FootprintFriction.impulse = patched_impulse  # type: ignore[method-assign]
         return self
 
     def __exit__(self, *exc: object) -> None:
         ff.FootprintFriction.__init__ = self._init  # type: ignore[method-assign]
-        ff.FootprintFriction.impulse = self._impulse  # type: ignore[method-assign]
 
-    def replay_s(self) -> tuple[float, int]:
-        """Seconds in the compiled kernel alone over every recorded input, and the count."""
+    def replay_s(self, dt: float) -> tuple[float, int]:
+        """Seconds in the compiled kernel alone over every recorded input (steps of `dt`),
+        and the count."""
         total, count = 0.0, 0
         for a, k, inputs in self.objects:
             fr = ff.FootprintFriction(*a, **k)
             g, fs, nrm, dxw, dyw = fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw
+            steps = [(np.array((x, y, w)), yaw, pushed) for x, y, w, yaw, pushed in inputs]
             t0 = time.process_time()
-            for xi_hat, yaw, dt, pushed in inputs:
+            for xi_hat, yaw, pushed in steps:
                 ff.impulse_kernel(g, fs, nrm, dxw, dyw, xi_hat, yaw, dt, pushed)
             total += time.process_time() - t0
             count += len(inputs)
@@ -169,7 +165,7 @@ def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[
         with ImpulseRecorder() as rec:
             for s in specs:
                 run_episode(s, sim)
-        kernel_s, kernel_n = rec.replay_s()
+        kernel_s, kernel_n = rec.replay_s(sim.settings.timestep_s)
         raws = [raw_step_s(sim, s, raw_n) for s in strided(specs, min(4, len(specs)))]
     finally:
         sim.close()

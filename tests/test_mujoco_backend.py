@@ -168,24 +168,71 @@ def test_renderer_is_reused_across_object_changes(sim):
     assert np.array_equal(first, again)
 
 
-def test_the_pusher_reach_shortcut_changes_no_outcome(sim):
-    """`_pusher_touching` skips the contact list when pusher and object are too far apart to
-    touch; with the shortcut off (infinite reach) the same pushes give the same outcomes, to
-    the bit (the touch flag feeds the friction model's pressure every step)."""
+def _box_scene(mu: float) -> SceneSpec:
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.5)
+    return SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, 0.3))
 
-    def pushes(reach_off: bool):
-        outs = []
-        for mu, speed in ((0.1, 0.4), (1.0, 0.04)):
-            obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.5)
-            scene = SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, 0.3))
-            sim.build(scene)
-            if reach_off:
-                sim._reach_m = math.inf
-            contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
-            normal = (math.cos(0.3), math.sin(0.3))
-            outs.append(sim.push(contact_push(contact, normal, 0.03, speed, 0.005)))
-        return outs
 
-    fast = pushes(False)
-    assert all(o.ok and o.contact_made for o in fast)
-    assert pushes(True) == fast
+def _box_push(sim, mu: float, speed: float):
+    """An off-CoM push of `_box_scene` on its -x face (it turns and slides)."""
+    scene = _box_scene(mu)
+    sim.build(scene)
+    contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
+    normal = (math.cos(0.3), math.sin(0.3))
+    return sim.push(contact_push(contact, normal, 0.03, speed, 0.005))
+
+
+@pytest.mark.parametrize("mu, speed", [(0.1, 0.4), (1.0, 0.04)])
+def test_a_traced_push_is_the_untraced_push(sim, mu, speed):
+    """With `floor_friction=model` a chunk of steps is one compiled call (mujoco_steps);
+    traced, every step is its own call. The same push to the bit: nothing the loop carries
+    from step to step (pusher path, touch flag, friction state) is lost between calls."""
+    plain = _box_push(sim, mu, speed)
+    assert plain.ok and plain.contact_made and abs(plain.true_rotation_deg) > 1.0
+    sim.trace = []
+    try:
+        traced = _box_push(sim, mu, speed)
+        assert len(sim.trace) == traced.steps
+        assert sim.trace[-1] == sim.object_state()
+    finally:
+        sim.trace = None
+    assert traced == plain
+
+
+def test_recording_the_friction_inputs_changes_nothing(sim, monkeypatch):
+    """`FootprintFriction.inputs` (bench/step_cost.py's replay) gets one row per step and
+    leaves the push as it was."""
+    plain = _box_push(sim, 0.5, 0.4)
+    rows: list = []
+    real_build = sim.build
+
+    def build(scene):
+        real_build(scene)
+        sim._fric.inputs = rows
+
+    monkeypatch.setattr(sim, "build", build)
+    recorded = _box_push(sim, 0.5, 0.4)
+    assert recorded == plain
+    assert len(rows) == recorded.steps
+    assert any(p for *_, p in rows) and not all(p for *_, p in rows)  # touched, then not
+
+
+def test_the_touch_sensor_reads_the_contact_list(sim):
+    """The compiled loop knows the pusher touches from a contact sensor; after every step of
+    a push it says what MuJoCo's contact list says: a pusher contact at negative distance."""
+    scene = _box_scene(0.3)
+    sim.build(scene)
+    m, d = sim.model, sim.data
+    pusher = m.geom("pusher").id
+    contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
+    n = np.array([math.cos(0.3), math.sin(0.3)])
+    start = contact - n * 0.007
+    sim._place_pusher(start)
+    seen = set()
+    for k in range(1, 120):  # 2 mm to the face, then 1.4 cm into it, at 0.4 m/s
+        sim._advance((start + n * 1.6e-4 * k)[None, :])
+        g, dist = d.contact.geom[: d.ncon], d.contact.dist[: d.ncon]
+        listed = bool(np.any(((g[:, 0] == pusher) | (g[:, 1] == pusher)) & (dist < 0)))
+        assert sim._pusher_touching() == listed, k
+        seen.add(listed)
+    assert seen == {False, True}

@@ -1,0 +1,123 @@
+"""MuJoCo's push steps compiled: the engine's step and the footprint friction, no Python between.
+
+Why: with `floor_friction=model` every step needs the floor's friction from the state the last
+step left (backends/floor_friction.py), so MuJoCo cannot run a chunk of steps in one call of
+its own. Stepped from Python, a step cost ~40 - 54 us of our Python around MuJoCo's ~20 us
+and the kernel's ~18 us (bench/step_cost.py, 8176422). Here one Numba call runs a whole chunk
+of the protocol: per step it puts the pusher on its path, computes the floor's friction force
+(`impulse_kernel`, the same kernel), calls libmujoco's `mj_step` by its C symbol, and reads
+whether the pusher touches the object from a contact sensor (`PUSHER_SENSOR`).
+
+What is given up: the Python bindings turn MuJoCo's fatal errors (`mju_error`) into Python
+exceptions; called from here such an error ends the process, as MuJoCo's default handler
+does. `mj_step` raises none for these scenes; its warnings (a full contact buffer, a bad
+acceleration) are still counted after every chunk (`MujocoSimulator._engine_failure`).
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+import os
+
+import mujoco
+import numpy as np
+from llvmlite import binding as llvm
+from numba import njit, types
+
+from comexp.backends.floor_friction import impulse_kernel
+
+
+def _libmujoco() -> str:
+    """The libmujoco the Python bindings load (the wheel ships it beside them)."""
+    pkg = os.path.dirname(mujoco.__file__)
+    found = sorted(glob.glob(os.path.join(pkg, f"libmujoco.so.{mujoco.__version__}")))
+    found = found or sorted(glob.glob(os.path.join(pkg, "libmujoco.so*")))
+    if not found:
+        raise ImportError(f"no libmujoco.so* beside the mujoco package in {pkg}")
+    return found[0]
+
+
+# The bindings have already loaded this library; loading it again for LLVM returns the same
+# handle, so the symbols below are the very functions `mujoco.mj_step` calls. Declared by name
+# (resolved when the compiled code is loaded), which keeps the compiled loop cacheable.
+# Pointers are passed as integers: the same registers in the x86-64 and AArch64 C ABIs.
+llvm.load_library_permanently(_libmujoco())
+_mj_step = types.ExternalFunction("mj_step", types.void(types.intp, types.intp))
+_mju_quat2mat = types.ExternalFunction("mju_quat2Mat", types.void(types.intp, types.intp))
+
+# The MJCF sensor whose reading says whether the pusher touches the object: every contact of
+# the pusher geom, reduced to the deepest one (sensordata = [count, its distance]). It is
+# evaluated inside mj_step from the same contact list the step used.
+PUSHER_SENSOR = "pusher_touch"
+PUSHER_SENSOR_MJCF = (
+    f'<sensor><contact name="{PUSHER_SENSOR}" geom1="pusher" data="found dist" '
+    f'reduce="mindist" num="1"/></sensor>'
+)
+
+
+@njit(cache=True)
+def pusher_touching(sensordata, adr):
+    """The pusher penetrates the object (a contact of the pusher geom at negative distance)."""
+    return sensordata[adr] > 0.0 and sensordata[adr + 1] < 0.0
+
+
+@njit(cache=True)
+def push_steps(
+    m_ptr, d_ptr, substeps, qpos, qvel, xipos, xfrc, sensordata, sensor_adr,
+    obj_q, obj_v, pusher_q, pusher_v, body, com_local, starts, vels,
+    geo, fs, normal, dxw, dyw, dt, pushed, record,
+):  # fmt: skip
+    """Runs one step per row of `starts` / `vels`: the pusher set at `starts[i]` moving at
+    `vels[i]` (kinematic, as `MujocoSimulator._set_pusher`), the floor's friction for the step
+    as a force at the floor under the CoM in `xfrc_applied` (`impulse_kernel` on the twist the
+    object has before it: `floor_friction=model`), then `substeps` calls of mj_step.
+
+    The arrays are MjData's own buffers (numpy views of it): MuJoCo's writes are seen here and
+    ours by MuJoCo. `record` (n x 5, or 0 rows: off) receives every step's friction input
+    (`FootprintFriction.inputs`). Returns (touched at any step, touching after the last, the
+    least cosine of the tilt seen after a step: the tilt is monotone in it)."""
+    rot = np.empty(9)
+    quat_adr = qpos.ctypes.data + 8 * (obj_q + 3)
+    touched = False
+    min_cos_tilt = 1.0
+    for i in range(starts.shape[0]):
+        qpos[pusher_q] = starts[i, 0]
+        qpos[pusher_q + 1] = starts[i, 1]
+        qvel[pusher_v] = vels[i, 0]
+        qvel[pusher_v + 1] = vels[i, 1]
+        # the object's twist at its CoM: the free joint's angular velocity is in the body
+        # frame, its linear velocity the body origin's in the world frame
+        _mju_quat2mat(rot.ctypes.data, quat_adr)
+        b0, b1, b2 = qvel[obj_v + 3], qvel[obj_v + 4], qvel[obj_v + 5]
+        w0 = rot[0] * b0 + rot[1] * b1 + rot[2] * b2
+        w1 = rot[3] * b0 + rot[4] * b1 + rot[5] * b2
+        w2 = rot[6] * b0 + rot[7] * b1 + rot[8] * b2
+        c0, c1, c2 = com_local[0], com_local[1], com_local[2]
+        r0 = rot[0] * c0 + rot[1] * c1 + rot[2] * c2
+        r1 = rot[3] * c0 + rot[4] * c1 + rot[5] * c2
+        r2 = rot[6] * c0 + rot[7] * c1 + rot[8] * c2
+        xi_hat = np.empty(3)
+        xi_hat[0] = qvel[obj_v] + (w1 * r2 - w2 * r1)
+        xi_hat[1] = qvel[obj_v + 1] + (w2 * r0 - w0 * r2)
+        xi_hat[2] = w2
+        yaw = math.atan2(rot[3], rot[0])
+        if record.shape[0]:
+            record[i, 0], record[i, 1], record[i, 2] = xi_hat[0], xi_hat[1], xi_hat[2]
+            record[i, 3], record[i, 4] = yaw, 1.0 if pushed else 0.0
+        imp = impulse_kernel(geo, fs, normal, dxw, dyw, xi_hat, yaw, dt, pushed)
+        fx, fy, tz = imp[0] / dt, imp[1] / dt, imp[2] / dt
+        z = xipos[body, 2]  # the CoM's height above the floor: the floor point's lever
+        xfrc[body, 0] = fx
+        xfrc[body, 1] = fy
+        xfrc[body, 2] = 0.0
+        xfrc[body, 3] = z * fy
+        xfrc[body, 4] = -z * fx
+        xfrc[body, 5] = tz
+        for _ in range(substeps):
+            _mj_step(m_ptr, d_ptr)
+        pushed = pusher_touching(sensordata, sensor_adr)
+        touched = touched or pushed
+        qx, qy = qpos[obj_q + 4], qpos[obj_q + 5]
+        min_cos_tilt = min(min_cos_tilt, 1.0 - 2.0 * (qx * qx + qy * qy))
+    return touched, pushed, min_cos_tilt
