@@ -52,6 +52,7 @@ from comexp.backends.floor_friction import FootprintFriction, FrictionSettings  
 from comexp.backends.mujoco_steps import (  # noqa: E402
     PUSHER_SENSOR,
     PUSHER_SENSOR_MJCF,
+    cos_tilt,
     push_steps,
     pusher_touching,
 )
@@ -424,13 +425,8 @@ def _quat_to_rpy(q: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
-def _cos_tilt(q: np.ndarray) -> float:
-    """Cosine of the angle between the body's z axis and world z, from the quaternion alone."""
-    return 1.0 - 2.0 * (float(q[1]) * float(q[1]) + float(q[2]) * float(q[2]))
-
-
 def _tilt_deg_of_cos(c: float) -> float:
-    """The tilt angle of `_cos_tilt`'s cosine (the largest tilt is that of the least cosine)."""
+    """The tilt angle of `cos_tilt`'s cosine."""
     return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
@@ -632,7 +628,8 @@ class MujocoSimulator(Simulator):
                 )
                 mujoco.mj_step(m, d, (j - i) * sub)
                 t = self._pushed = self._pusher_touching()
-                c = _cos_tilt(self._obj_quat())
+                q = self._obj_quat()
+                c = float(cos_tilt(float(q[1]), float(q[2])))
             touched = touched or t
             min_cos = min(min_cos, c)
             if self.trace is not None:

@@ -63,6 +63,13 @@ def pusher_touching(sensordata, adr):
 
 
 @njit(cache=True)
+def cos_tilt(qx, qy):
+    """Cosine of the angle between the body's z axis and world z, from the x and y parts of
+    its (w, x, y, z) quaternion: the largest tilt is that of the least cosine."""
+    return 1.0 - 2.0 * (qx * qx + qy * qy)
+
+
+@njit(cache=True)
 def push_steps(
     m_ptr, d_ptr, substeps, qpos, qvel, xipos, xfrc, sensordata, sensor_adr,
     obj_q, obj_v, pusher_q, pusher_v, body, com_local, starts, vels,
@@ -79,6 +86,7 @@ def push_steps(
     least cosine of the tilt seen after a step: the tilt is monotone in it)."""
     rot = np.empty(9)
     quat_adr = qpos.ctypes.data + 8 * (obj_q + 3)
+    xi_hat = np.empty(3)
     touched = False
     min_cos_tilt = 1.0
     for i in range(starts.shape[0]):
@@ -97,7 +105,6 @@ def push_steps(
         r0 = rot[0] * c0 + rot[1] * c1 + rot[2] * c2
         r1 = rot[3] * c0 + rot[4] * c1 + rot[5] * c2
         r2 = rot[6] * c0 + rot[7] * c1 + rot[8] * c2
-        xi_hat = np.empty(3)
         xi_hat[0] = qvel[obj_v] + (w1 * r2 - w2 * r1)
         xi_hat[1] = qvel[obj_v + 1] + (w2 * r0 - w0 * r2)
         xi_hat[2] = w2
@@ -118,6 +125,5 @@ def push_steps(
             _mj_step(m_ptr, d_ptr)
         pushed = pusher_touching(sensordata, sensor_adr)
         touched = touched or pushed
-        qx, qy = qpos[obj_q + 4], qpos[obj_q + 5]
-        min_cos_tilt = min(min_cos_tilt, 1.0 - 2.0 * (qx * qx + qy * qy))
+        min_cos_tilt = min(min_cos_tilt, cos_tilt(qpos[obj_q + 4], qpos[obj_q + 5]))
     return touched, pushed, min_cos_tilt

@@ -229,7 +229,7 @@ def test_the_touch_sensor_reads_the_contact_list(sim):
     start = contact - n * 0.007
     sim._place_pusher(start)
     seen = set()
-    for k in range(1, 120):  # 2 mm to the face, then 1.4 cm into it, at 0.4 m/s
+    for k in range(1, 120):  # 2 mm to the face, then 1.7 cm into it, at 0.16 m/s
         sim._advance((start + n * 1.6e-4 * k)[None, :])
         g, dist = d.contact.geom[: d.ncon], d.contact.dist[: d.ncon]
         listed = bool(np.any(((g[:, 0] == pusher) | (g[:, 1] == pusher)) & (dist < 0)))
