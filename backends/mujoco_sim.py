@@ -58,6 +58,7 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
 )
 from comexp.experiment.simulator import (  # noqa: E402
     FLOOR_FRICTION_CHOICES,
+    RENDERER_CHOICES,
     PushStatus,
     Simulator,
     crop_camera,
@@ -473,11 +474,15 @@ class MujocoSimulator(Simulator):
         settings: SimSettings | None = None,
         contact: MujocoContactSettings | None = None,
         floor_friction: str = "model",
+        renderer: str = "engine",
     ) -> None:
         super().__init__(settings)
         if floor_friction not in FLOOR_FRICTION_CHOICES:
             raise ValueError(f"floor_friction must be one of {FLOOR_FRICTION_CHOICES}")
+        if renderer not in RENDERER_CHOICES:
+            raise ValueError(f"renderer must be one of {RENDERER_CHOICES}")
         self.floor_friction = floor_friction
+        self.renderer = renderer
         self._fric: FootprintFriction | None = None
         self._pushed = False
         self.contact = contact or DEFAULT_CONTACT
@@ -673,6 +678,8 @@ class MujocoSimulator(Simulator):
     # --- camera --------------------------------------------------------------------------
     def render_depth(self) -> DepthImage:
         _, d = self._require()
+        if self.renderer == "raycast":
+            return self._raycast_depth()
         r = self._renderer()
         r.data.qpos[:] = d.qpos
         mujoco.mj_kinematics(r.model, r.data)
@@ -688,6 +695,8 @@ class MujocoSimulator(Simulator):
         (CPU per tracking frame, bench/tracking.py: window 1.0 - 1.4 ms, full image 2.1 - 2.6 ms;
         the rest is fixed cost: scene update, read-back)."""
         _, d = self._require()
+        if self.renderer == "raycast":
+            return self._raycast_depth()
         scene = self._scene
         model = scene.camera.model()
         win = object_window_px(model, scene.obj.outline_m, scene.obj.height_m, self.object_state())

@@ -40,6 +40,7 @@ from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
 from comexp.experiment.simulator import (
     FLOOR_FRICTION_CHOICES,
     PARK_XY_M,
+    RENDERER_CHOICES,
     Simulator,
     crop_camera,
     object_window_px,
@@ -214,11 +215,19 @@ class PybulletSimulator(Simulator):
 
     name = "pybullet"
 
-    def __init__(self, settings: SimSettings | None = None, floor_friction: str = "model") -> None:
+    def __init__(
+        self,
+        settings: SimSettings | None = None,
+        floor_friction: str = "model",
+        renderer: str = "engine",
+    ) -> None:
         super().__init__(settings)
         if floor_friction not in FLOOR_FRICTION_CHOICES:
             raise ValueError(f"floor_friction must be one of {FLOOR_FRICTION_CHOICES}")
+        if renderer not in RENDERER_CHOICES:
+            raise ValueError(f"renderer must be one of {RENDERER_CHOICES}")
         self.floor_friction = floor_friction
+        self.renderer = renderer
         self._fric: FootprintFriction | None = None
         self._pushed = False
         self._cid = pb.connect(pb.DIRECT)
@@ -495,6 +504,8 @@ class PybulletSimulator(Simulator):
 
     def render_depth(self) -> DepthImage:
         scene = self._require_scene()
+        if self.renderer == "raycast":
+            return self._raycast_depth()
         cam = scene.camera
         _, _, _, depth_buf, _ = pb.getCameraImage(
             cam.width_px,
@@ -516,6 +527,8 @@ class PybulletSimulator(Simulator):
         bench/tracking.py: window 0.9 - 1.0 ms, full image 9.6 - 10.8 ms), and a tracking frame
         needs the object only."""
         scene = self._require_scene()
+        if self.renderer == "raycast":
+            return self._raycast_depth()
         cam = scene.camera
         model = cam.model()
         win = object_window_px(model, scene.obj.outline_m, scene.obj.height_m, self.object_state())

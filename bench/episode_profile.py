@@ -86,7 +86,9 @@ def job_backend_options(
     """The backend options `comexp` hands its workers for this job (`EpisodePool`'s
     `backend_options`): without them a worker runs another physics than the episodes name,
     and refuses every one (`physics_mismatch`)."""
-    return _job(backend, floor, speed, overrides).cfg.backend.options()
+    from comexp.experiment.config import simulator_options
+
+    return simulator_options(_job(backend, floor, speed, overrides).cfg)
 
 
 def strided(specs: Sequence[EpisodeSpec], n: int) -> list[EpisodeSpec]:
@@ -244,7 +246,8 @@ def result_record(r: EpisodeResult) -> dict[str, Any]:
         "est_com_cm": r.est_com_cm,
         "error_cm": r.error_cm,
         "pushes": [
-            [p.contact_x_cm, p.contact_y_cm, p.rotation_deg, p.decision, p.region_px]
+            [p.contact_x_cm, p.contact_y_cm, p.rotation_deg, p.decision, p.region_px,
+             p.rotation_true_deg]  # fmt: skip
             for p in r.pushes
         ],
     }
@@ -257,12 +260,10 @@ def profile(
     floor: str,
     dump: str | None,
     raw_s: float,
-    options: dict[str, str] | None = None,
+    overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
-    opts = options or {}
-    specs = strided(
-        job_specs(backend, floor, speed, [f"backend.{k}={v}" for k, v in opts.items()]), n
-    )
+    specs = strided(job_specs(backend, floor, speed, overrides), n)
+    opts = job_backend_options(backend, floor, speed, overrides)
     sim = make_simulator(backend, **opts)
     out_digest = source_digest(backend)
     timer = PhaseTimer()
@@ -449,6 +450,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("model", "native"),
         help="engines: backend.floor_friction (default: the config's, model)",
     )
+    ap.add_argument(
+        "--renderer",
+        choices=("raycast", "engine"),
+        help="engines: camera.renderer (default: the config's, raycast)",
+    )
     ap.add_argument("--episodes", type=int, default=40)
     ap.add_argument("--speed", type=float, default=40.0, help="cm/s (40 dynamic, 4 quasi-static)")
     ap.add_argument("--floor", choices=("iso", "aniso"), default="iso")
@@ -463,8 +469,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(lines))
         return 0
     with engine_stdout_silenced(not a.engine_output):
-        opts = {"floor_friction": a.floor_friction} if a.floor_friction else {}
-        o = profile(a.backend, a.episodes, a.speed, a.floor, a.dump, a.raw_seconds, opts)
+        overrides = [f"backend.floor_friction={a.floor_friction}"] if a.floor_friction else []
+        overrides += [f"camera.renderer={a.renderer}"] if a.renderer else []
+        o = profile(a.backend, a.episodes, a.speed, a.floor, a.dump, a.raw_seconds, overrides)
     report(o)
     return 0
 

@@ -30,7 +30,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from comexp.experiment.config import ConfigError, PreparedJob, prepare_job
+from comexp.experiment.config import ConfigError, PreparedJob, prepare_job, simulator_options
 from comexp.experiment.grid import expand_grid
 from comexp.experiment.objects import yaml_error_line
 
@@ -240,7 +240,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
                 max_retries=exp.execution.max_retries,
                 replace_timeout_s=exp.execution.restart_timeout_s,
                 episode_timeout_s=exp.execution.episode_timeout_s,
-                backend_options=exp.backend.options(),
+                backend_options=simulator_options(exp),
             )
             with pool:
                 stats = run_and_store(

@@ -93,6 +93,9 @@ class CameraConfig:
     rotation of the study (docs/method.md, "Tracking during the push")."""
 
     fps: float = 30.0
+    # how the engines make depth images: raycast (the exact ray cast of the prism at the
+    # engine's pose, planar's camera) | engine (the engine's own renderer); docs/method.md
+    renderer: str = "raycast"
 
 
 @dataclass
@@ -184,6 +187,17 @@ class ExperimentConfig:
     seed: int = 0
 
 
+def simulator_options(cfg: Any) -> dict[str, str]:
+    """The simulator's constructor options for a job (`make_simulator`, the workers' pool and
+    the episodes' physics identity): the backend's own, and the engines' renderer. The
+    renderer is named only when it is not the engine's own, so that rows stored before the
+    option existed (engine-rendered) keep their identity."""
+    opts = dict(cfg.backend.options())
+    if cfg.backend.name != "planar" and cfg.camera.renderer != "engine":
+        opts["renderer"] = cfg.camera.renderer
+    return opts
+
+
 def register_configs() -> None:
     """Register the schema; `conf/config.yaml` lists it first in its defaults."""
     cs = ConfigStore.instance()
@@ -251,7 +265,7 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
         raise ConfigError(
             f"unknown backend {cfg.backend.name!r} (choose one of: {', '.join(backend_names())})"
         )
-    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES
+    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES
 
     if cfg.backend.floor_friction not in FLOOR_FRICTION_CHOICES:
         raise ConfigError(
@@ -298,6 +312,11 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
         raise ConfigError(
             f"camera.fps must be between 0 (before and after only) and {MAX_CAMERA_FPS:g} "
             f"(a commodity depth camera), got {fps!r}"
+        )
+    if cfg.camera.renderer not in RENDERER_CHOICES:
+        raise ConfigError(
+            f"camera.renderer must be one of {', '.join(RENDERER_CHOICES)}, "
+            f"got {cfg.camera.renderer!r}"
         )
     if g.objects is not None:
         if not g.objects:

@@ -12,7 +12,7 @@ import hashlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
-from comexp.experiment.config import ExperimentConfig, estimator_settings
+from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_options
 from comexp.experiment.episode import EpisodeSpec, EstimatorSettings
 
 
@@ -56,7 +56,7 @@ def expand_grid(
     from comexp.experiment.simulator import physics_identity
 
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
-    physics = physics_identity(cfg.backend.name, options=cfg.backend.options())
+    physics = physics_identity(cfg.backend.name, options=simulator_options(cfg))
     names = list(cfg.grid.objects) if cfg.grid.objects is not None else sorted(objects)
     floors = floor_conditions(cfg.floor.name, cfg.floor.mu, cfg.floor.orientations)
     n_com = cfg.grid.coms_per_object

@@ -38,6 +38,11 @@ BACKENDS: dict[str, str] = {
 # (backends/floor_friction.py) as a force each step, the engine's own object-floor friction off;
 # "native" is the engine's own contact friction (kept to show the difference).
 FLOOR_FRICTION_CHOICES = ("model", "native")
+# How an engine makes its depth images (`camera.renderer`): "raycast" is the exact ray cast of
+# the prism at the engine's pose (`comexp.method.perception.render_prism_depth`, planar's
+# camera; no pusher in the image, which the tracker masks anyway); "engine" is the engine's own
+# renderer (pybullet's tiny renderer, MuJoCo's GL on Mesa).
+RENDERER_CHOICES = ("raycast", "engine")
 # Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
 # pusher's top, unreachable by an object still in view.
 PARK_XY_M = (0.0, 0.5)
@@ -208,6 +213,16 @@ class Simulator(ABC):
         camera model of that window (`crop_camera`), so its pixels map to the same world points
         as the full image's."""
         return self.render_depth()
+
+    def _raycast_depth(self) -> DepthImage:
+        """The exact ray-cast depth image of the prism at the true pose (`camera.renderer=
+        raycast`): an engine's alternative to its own renderer, the same pixels as planar's."""
+        from comexp.method.perception import render_prism_depth
+
+        scene = self._scene_or_fail()
+        return render_prism_depth(
+            self._camera_model(), self._outline_m(), scene.obj.height_m, self.object_state().pose
+        )
 
     def _engine_failure(self) -> PushStatus | None:
         """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""

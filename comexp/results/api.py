@@ -98,17 +98,23 @@ def stored_spec(db: DbLike, episode_id: int) -> tuple[EpisodeSpec, dict[str, Any
 
 
 def backend_options_for(spec: EpisodeSpec) -> dict[str, Any]:
-    """The backend options (`backend.floor_friction`, ...) that gave a stored episode its
-    physics: the ones whose `physics_identity` is the spec's. The identity keeps only a hash
-    of the options, so each choice is tried. An episode stored without a pinned physics runs
-    with the defaults."""
-    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES, physics_identity
-
-    choices = (
-        [{}]
-        if spec.backend == "planar"
-        else [{"floor_friction": c} for c in FLOOR_FRICTION_CHOICES]
+    """The backend options (`backend.floor_friction`, `camera.renderer`) that gave a stored
+    episode its physics: the ones whose `physics_identity` is the spec's. The identity keeps
+    only a hash of the options, so each choice is tried. An episode stored without a pinned
+    physics runs with the defaults."""
+    from comexp.experiment.simulator import (
+        FLOOR_FRICTION_CHOICES,
+        RENDERER_CHOICES,
+        physics_identity,
     )
+
+    choices: list[dict[str, str]] = [{}]
+    if spec.backend != "planar":  # the renderer is named only when not the engine's own
+        choices = [
+            {"floor_friction": f, **({} if r == "engine" else {"renderer": r})}
+            for r in RENDERER_CHOICES
+            for f in FLOOR_FRICTION_CHOICES
+        ]
     if not spec.physics:
         return choices[0]
     for options in choices:
