@@ -246,8 +246,14 @@ def result_record(r: EpisodeResult) -> dict[str, Any]:
         "est_com_cm": r.est_com_cm,
         "error_cm": r.error_cm,
         "pushes": [
-            [p.contact_x_cm, p.contact_y_cm, p.rotation_deg, p.decision, p.region_px,
-             p.rotation_true_deg]  # fmt: skip
+            [
+                p.contact_x_cm,
+                p.contact_y_cm,
+                p.rotation_deg,
+                p.decision,
+                p.region_px,
+                p.rotation_true_deg,
+            ]  # fmt: skip
             for p in r.pushes
         ],
     }
