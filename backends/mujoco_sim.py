@@ -551,12 +551,12 @@ class MujocoSimulator(Simulator):
         mujoco.mju_quat2Mat(rot, quat)
         w_world = rot.reshape(3, 3) @ d.qvel[v + 3 : v + 6]  # free joint: angular vel is local
         return ObjectState(
-            position_m=tuple(float(x) for x in d.qpos[q : q + 3]),
+            position_m=tuple(d.qpos[q : q + 3].tolist()),
             roll_rad=roll,
             pitch_rad=pitch,
             yaw_rad=yaw,
-            linear_velocity_m_s=tuple(float(x) for x in d.qvel[v : v + 3]),
-            angular_velocity_rad_s=tuple(float(x) for x in w_world),
+            linear_velocity_m_s=tuple(d.qvel[v : v + 3].tolist()),
+            angular_velocity_rad_s=tuple(w_world.tolist()),
         )
 
     def set_object_velocity(

@@ -49,7 +49,7 @@ from comexp.backends.floor_friction import (
     offsets_kernel,
     set_cop_kernel,
 )
-from comexp.experiment.simulator import Simulator
+from comexp.experiment.simulator import Simulator, point_polygon_distance
 from comexp.method.perception import render_prism_depth
 from comexp.method.scene import (
     GRAVITY_M_S2,
@@ -363,6 +363,18 @@ class PlanarModel:
 
 
 _NO_TRACE = np.zeros((0, TRACE_COLS))
+# clearance beyond a step's length for `_steps_still` (m): 10x the step's own contact reach
+_STILL_MARGIN_M = 1e-4
+
+
+def _boundary_distance(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance of each point (n x 2) from a polygon's boundary."""
+    a = poly[None, :, :]
+    ab = np.roll(poly, -1, axis=0)[None, :, :] - a
+    ap = pts[:, None, :] - a
+    t = np.clip(np.sum(ap * ab, axis=2) / np.sum(ab * ab, axis=2), 0.0, 1.0)
+    closest = a + t[:, :, None] * ab
+    return np.min(np.hypot(*(pts[:, None, :] - closest).transpose(2, 0, 1)), axis=1)
 
 
 def _object_state(com: np.ndarray, g, yaw: float, xi, tipped: bool) -> ObjectState:
@@ -435,6 +447,23 @@ class PlanarSimulator(Simulator):
 
     def _pusher_xy(self) -> np.ndarray:
         return self._q.copy()
+
+    def _steps_still(self, targets: np.ndarray) -> int:
+        """The leading steps in which the pusher surely stays clear of an object that is
+        exactly at rest: friction then holds it exactly (no creep), so nothing moves. A step
+        is clear when the pusher's end position is farther from the outline than the step is
+        long (by `_STILL_MARGIN_M`): every point of its straight path is then outside."""
+        m = self._require()
+        if m.tipped or m.ms[XI_X] != 0.0 or m.ms[XI_Y] != 0.0 or m.ms[XI_W] != 0.0:
+            return 0
+        pts = np.concatenate([self._q[None, :], np.asarray(targets, dtype=float)])
+        poly = self.object_state().pose.to_world(m.outline)
+        if point_polygon_distance(pts[0], poly) < m.radius:
+            return 0
+        clear = _boundary_distance(pts[1:], poly) - m.radius
+        need = np.hypot(*np.diff(pts, axis=0).T) + _STILL_MARGIN_M
+        bad = np.flatnonzero(clear < need)
+        return int(bad[0]) if len(bad) else len(targets)
 
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
         m = self._require()

@@ -17,6 +17,7 @@ Frames (written down once, in docs/method.md, and tested):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -231,8 +232,9 @@ class ObjectState:
         """Angle between the object's z axis and world z."""
         return tilt_deg(self.roll_rad, self.pitch_rad)
 
-    @property
+    @functools.cached_property
     def is_finite(self) -> bool:
+        """Every coordinate finite (asked several times per protocol check: computed once)."""
         vals = (
             *self.position_m,
             self.roll_rad,
@@ -241,7 +243,7 @@ class ObjectState:
             *self.linear_velocity_m_s,
             *self.angular_velocity_rad_s,
         )
-        return all(math.isfinite(v) for v in vals)
+        return all(map(math.isfinite, vals))
 
 
 @dataclass(frozen=True)
