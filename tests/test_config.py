@@ -5,14 +5,18 @@ The command-line side (one error line, exit code, nothing written) is in test_cl
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
+from comexp.cli.run import probe_resources
 from comexp.experiment import config as config_module
 from comexp.experiment.config import (
     ConfigError,
@@ -125,7 +129,6 @@ def test_wrong_types_are_rejected_while_composing() -> None:
         (["floor.orientations=[xy]"], "floor.orientations"),
         (["workers=0"], "workers"),
         (["seed=-1"], "seed"),
-        (["db=/proc/no/such.db"], "db"),
     ],
 )
 def test_bad_values_are_rejected_with_one_line(overrides: list[str], needle: str) -> None:
@@ -207,8 +210,37 @@ def test_ray_address_parses(address: str, expected: tuple[str, int]) -> None:
 def test_bad_ray_addresses_are_config_errors(address: str) -> None:
     with pytest.raises(ValueError):
         session.check_ray_address(address)
+    job = prepare_job(_compose(f"ray.address='{address}'"))  # validation probes nothing
     with pytest.raises(ConfigError, match=r"^ray\.address: "):
-        prepare_job(_compose(f"ray.address='{address}'"))
+        probe_resources(job.cfg)
+
+
+def test_a_database_location_that_cannot_be_is_a_config_error() -> None:
+    job = prepare_job(_compose("db=/proc/no/such.db"))
+    with pytest.raises(ConfigError, match=r"^db: ") as info:
+        probe_resources(job.cfg)
+    assert "\n" not in str(info.value)
+
+
+def test_validation_is_pure() -> None:
+    """Validating a job imports neither the results store nor the workers (a wrong-way
+    import), so it probes neither the database nor Ray: the command does, once."""
+    code = (
+        "import sys\n"
+        "from hydra import compose, initialize_config_module\n"
+        "from comexp.experiment.config import prepare_job\n"
+        "with initialize_config_module('comexp.conf', version_base='1.3'):\n"
+        "    cfg = compose('config', overrides=['db=/proc/x.db'], return_hydra_config=True)\n"
+        "prepare_job(cfg)\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('comexp.', 'ray', 'sqlalchemy'))))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    loaded = ast.literal_eval(out.stdout.strip().splitlines()[-1])
+    assert loaded, "the check sees the modules"
+    wrong = [m for m in loaded if m.startswith(("comexp.results", "comexp.workers", "ray"))]
+    assert wrong == [], wrong
+    assert not [m for m in loaded if m.startswith("sqlalchemy")]
 
 
 def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None:

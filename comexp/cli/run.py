@@ -36,7 +36,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from comexp.experiment.config import ConfigError, PreparedJob, prepare_job
+from comexp.experiment.config import ConfigError, ExperimentConfig, PreparedJob, prepare_job
 from comexp.experiment.grid import expand_grid
 from comexp.experiment.objects import yaml_error_line
 
@@ -104,13 +104,31 @@ def _sweep_job_overrides(config: DictConfig) -> list[list[str]] | None:
     return [list(job) for job in itertools.product(*values.values())]
 
 
+def probe_resources(exp: ExperimentConfig) -> None:
+    """What the job needs outside itself, probed once before anything is written: a database
+    location that can hold the database, and a Ray address where something listens. Raises
+    `ConfigError` naming the key."""
+    from comexp.results.store import check_location
+    from comexp.workers.session import check_ray_address
+
+    try:
+        check_location(exp.db)
+    except ValueError as e:
+        raise ConfigError(f"db: {e}") from None
+    try:
+        check_ray_address(exp.ray.address)
+    except ValueError as e:
+        raise ConfigError(f"ray.address: {e}") from None
+
+
 class ValidateCallback(Callback):
-    """Checks every job's config (types, values, objects) up front; with `--cfg` and `-m`,
-    prints every job's config instead (`ShowJobs`)."""
+    """Checks every job's config (types, values, objects) and probes its database location
+    and Ray address (`probe_resources`), once per job, up front; with `--cfg` and `-m`, prints
+    every job's config instead (`ShowJobs`)."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         try:
-            prepare_job(config)
+            probe_resources(prepare_job(config).cfg)
         except ConfigError as e:
             raise Abort(str(e), EXIT_BAD_INPUT) from None
 
@@ -132,9 +150,13 @@ class ValidateCallback(Callback):
         if _show_jobs is not None:
             _show_jobs.print(jobs, job_cfgs)
             raise Abort("", 0)  # printed: nothing runs, nothing is created
+        probed: set[tuple[str, str | None]] = set()  # jobs share a database and Ray: once each
         for overrides, job_cfg in zip(jobs, job_cfgs, strict=True):
             try:
-                prepare_job(job_cfg)
+                exp = prepare_job(job_cfg).cfg
+                if (exp.db, exp.ray.address) not in probed:
+                    probe_resources(exp)
+                    probed.add((exp.db, exp.ray.address))
             except ConfigError as e:
                 where = " ".join(overrides)
                 raise Abort(f"{e} (job: {where})" if where else str(e), EXIT_BAD_INPUT) from None
@@ -297,7 +319,8 @@ def _scrub_hydra_files(url: str) -> None:
 
 
 def run_job(cfg: DictConfig) -> dict[str, Any]:
-    """Validate, expand the grid, run what is not stored yet, write the job's reports."""
+    """Validate, expand the grid, run what is not stored yet, write the job's reports (the
+    validate callback has probed the database location and Ray before Hydra wrote anything)."""
     from comexp.results.identity import episode_key
     from comexp.results.store import redact_url
     from comexp.workers.driver import Progress, run_and_store
@@ -325,7 +348,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         summary: dict[str, Any] = {"episodes": len(specs), "skipped": len(specs) - len(todo)}
         if todo:
             # Ray first: a cluster that cannot be joined leaves no sweep row behind
-            # (`prepare_job` has already rejected an address where nothing listens).
+            # (`probe_resources` has already rejected an address where nothing listens).
             ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
             hc = HydraConfig.get()
             job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])

@@ -2,9 +2,10 @@
 
 The dataclasses below are registered in Hydra's ConfigStore as the schema of `conf/config.yaml`,
 so a wrong *type* (``speed=abc``) is rejected by Hydra while composing. Wrong *values*
-(negative speed, unknown object, unwritable database, ...) are caught by `prepare_job`, which
-the CLI runs before Hydra creates any output folder (see `comexp.cli.run`): bad input must cost
-nothing and leave nothing behind.
+(negative speed, unknown object, ...) are caught by `prepare_job`, which the CLI runs before
+Hydra creates any output folder (see `comexp.cli.run`): bad input must cost nothing and leave
+nothing behind. Validation is pure: it imports neither the results store nor the workers, and
+probes neither the database nor Ray (the command does, once: `comexp.cli.run.probe_resources`).
 """
 
 from __future__ import annotations
@@ -348,8 +349,9 @@ class PreparedJob:
 
 
 def prepare_job(cfg: DictConfig) -> PreparedJob:
-    """Typed config + validation + objects + database location + a reachable Ray address;
-    raises `ConfigError`.
+    """Typed config + validation + objects; raises `ConfigError`. Pure: it reads the job's
+    config and its object files, and probes nothing outside (the database location and the Ray
+    address are the command's to probe, once: `comexp.cli.run.probe_resources`).
 
     Objects are looked up in the job's config sources: `cfg.hydra` in a callback's view of the
     config, `HydraConfig` inside the task function.
@@ -365,16 +367,4 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
         objects = load_objects(exp.grid.objects, OmegaConf.to_container(sources, resolve=False))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    from comexp.results.store import check_location
-
-    try:
-        check_location(exp.db)
-    except ValueError as e:
-        raise ConfigError(f"db: {e}") from None
-    from comexp.workers.session import check_ray_address
-
-    try:
-        check_ray_address(exp.ray.address)
-    except ValueError as e:
-        raise ConfigError(f"ray.address: {e}") from None
     return PreparedJob(cfg=exp, estimator=est, objects=objects)
