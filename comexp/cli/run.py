@@ -48,7 +48,6 @@ EXIT_INTERRUPTED = 130
 VERSIONED_PACKAGES = (
     "comexp",
     "numpy",
-    "scipy",
     "shapely",
     "opencv-python-headless",
     "pybullet",
