@@ -20,8 +20,10 @@ IMPORT_NAMES = {
     "psycopg": "psycopg",
 }
 # declared but reached without an import statement of ours: the PostgreSQL driver, which
-# SQLAlchemy loads for postgresql:// URLs (the `postgres` extra)
-NOT_IMPORTED = {"psycopg"}
+# SQLAlchemy loads for postgresql:// URLs (the `postgres` extra), and SciPy, whose LAPACK
+# Numba's np.linalg calls at run time (np.linalg.solve in backends/floor_friction.py's kernels:
+# without SciPy they abort the process, "Specified LAPACK function could not be found")
+NOT_IMPORTED = {"psycopg", "scipy"}
 # extras for development only (the test suite, the linter)
 DEV_EXTRAS = {"test"}
 
@@ -85,6 +87,19 @@ def test_what_is_declared_is_imported() -> None:
         d for d in required | optional if d not in NOT_IMPORTED and _module(d) not in imported
     )
     assert not unused, f"declared in pyproject.toml, imported nowhere: {unused}"
+
+
+def test_scipy_is_what_numba_linalg_needs() -> None:
+    """The reason SciPy is declared though nothing imports it: a Numba kernel that calls
+    np.linalg.solve (as floor_friction's do) runs."""
+    import numba
+    import numpy as np
+
+    @numba.njit(cache=False)
+    def solve(a, b):
+        return np.linalg.solve(a, b)
+
+    assert np.allclose(solve(np.eye(2) * 2.0, np.ones(2)), [0.5, 0.5])
 
 
 def test_the_scan_sees_the_imports() -> None:

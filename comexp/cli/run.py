@@ -48,6 +48,7 @@ EXIT_INTERRUPTED = 130
 VERSIONED_PACKAGES = (
     "comexp",
     "numpy",
+    "scipy",
     "shapely",
     "opencv-python-headless",
     "pybullet",
