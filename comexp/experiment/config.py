@@ -143,7 +143,7 @@ class EstimatorConfig:
     band_signed: bool = _EST.band_signed
     contact_spacing: float = _EST.contact_spacing_px  # px
     check_reachability: bool = _EST.check_reachability
-    method: str = _EST.method  # paper | magnitude
+    method: str = _EST.method  # paper | magnitude | my_pkg.module:MyEstimator (a plug-in)
     mag_noise: float = _EST.mag_noise_deg  # deg
     mag_rel_noise: float = _EST.mag_rel_noise
     mag_floor_model: bool = _EST.mag_floor_model
