@@ -11,60 +11,22 @@ The package is laid out by concern, in the order data flows through it:
 
 `comexp.load_results(db, table="episodes")` (a pandas DataFrame) and
 `comexp.replay(db, episode_id)` are imported on first use, so `import comexp` stays light.
-The module names the README and docs document (`comexp.estimator`, `comexp.perception`,
-`comexp.reports`, ...) are the same modules under their room (`_ALIASES`), imported on first
-use too: one module, two names, no copy.
+The short module names the README and docs use (`comexp.estimator`, `comexp.perception`,
+`comexp.scene`, `comexp.objects`, `comexp.simulator`, `comexp.reports`) are thin modules that
+re-export the module in its room (`comexp/estimator.py` -> `comexp.method.estimator`, ...);
+as attributes of `comexp` they too are imported on first use.
 """
 
 from __future__ import annotations
 
 import importlib
-import importlib.abc
-import importlib.machinery
-import importlib.util
-import sys
-from types import ModuleType
 from typing import Any
 
 __version__ = "0.1.0"
 __all__ = ["load_results", "replay"]
 
-# documented name -> the module in its room
-_ALIASES = {
-    "comexp.estimator": "comexp.method.estimator",
-    "comexp.perception": "comexp.method.perception",
-    "comexp.scene": "comexp.method.scene",
-    "comexp.objects": "comexp.experiment.objects",
-    "comexp.simulator": "comexp.experiment.simulator",
-    "comexp.reports": "comexp.results.reports",
-}
-
-
-class _AliasFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    """`import comexp.estimator` gives the module `comexp.method.estimator` itself."""
-
-    def find_spec(
-        self, fullname: str, path: Any = None, target: ModuleType | None = None
-    ) -> importlib.machinery.ModuleSpec | None:
-        if fullname not in _ALIASES:
-            return None
-        return importlib.util.spec_from_loader(fullname, self)
-
-    def create_module(self, spec: importlib.machinery.ModuleSpec) -> ModuleType:
-        module = importlib.import_module(_ALIASES[spec.name])
-        spec.loader_state = module.__spec__  # the import system sets the alias' spec on it
-        return module
-
-    def exec_module(self, module: ModuleType) -> None:
-        """Nothing to run: the real module ran when it was imported under its own name; it
-        gets its own spec back."""
-        own = module.__spec__.loader_state
-        if isinstance(own, importlib.machinery.ModuleSpec):
-            module.__spec__ = own
-
-
-if not any(isinstance(f, _AliasFinder) for f in sys.meta_path):
-    sys.meta_path.insert(0, _AliasFinder())
+# the re-export modules beside this file (comexp/<name>.py)
+SHORT_MODULES = ("estimator", "perception", "scene", "objects", "simulator", "reports")
 
 
 def __getattr__(name: str) -> Any:
@@ -72,6 +34,6 @@ def __getattr__(name: str) -> Any:
         from comexp.results import api
 
         return getattr(api, name)
-    if f"comexp.{name}" in _ALIASES:
+    if name in SHORT_MODULES:
         return importlib.import_module(f"comexp.{name}")
     raise AttributeError(f"module 'comexp' has no attribute {name!r}")

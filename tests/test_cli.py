@@ -166,6 +166,25 @@ def test_malformed_group_file_hydra_composes_is_one_line(tmp_path: Path, args: l
 # --- `--cfg` with `-m` ----------------------------------------------------------------------------
 
 
+def test_no_hydra_internals() -> None:
+    """Public Hydra APIs only (compose, callbacks, the override parser): nothing imports
+    `hydra._internal` or replaces Hydra's methods, so hydra-core is not pinned below 1.4."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1]
+    found = []
+    for folder in ("comexp", "backends", "workers"):
+        for path in (root / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = []
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.module:
+                    names = [node.module]
+                found += [f"{path.name}: {n}" for n in names if n.startswith("hydra._internal")]
+    assert found == []
+
+
 def test_cfg_with_multirun_prints_every_jobs_config(tmp_path: Path) -> None:
     r = comexp(tmp_path, "-m", "floor=iso,aniso", "speed=40,4", "--cfg", "job")
     assert r.returncode == 0, r.stderr

@@ -5,14 +5,18 @@ The command-line side (one error line, exit code, nothing written) is in test_cl
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
+from comexp.cli.run import probe_resources
 from comexp.experiment import config as config_module
 from comexp.experiment.config import (
     ConfigError,
@@ -125,7 +129,6 @@ def test_wrong_types_are_rejected_while_composing() -> None:
         (["floor.orientations=[xy]"], "floor.orientations"),
         (["workers=0"], "workers"),
         (["seed=-1"], "seed"),
-        (["db=/proc/no/such.db"], "db"),
     ],
 )
 def test_bad_values_are_rejected_with_one_line(overrides: list[str], needle: str) -> None:
@@ -207,8 +210,37 @@ def test_ray_address_parses(address: str, expected: tuple[str, int]) -> None:
 def test_bad_ray_addresses_are_config_errors(address: str) -> None:
     with pytest.raises(ValueError):
         session.check_ray_address(address)
+    job = prepare_job(_compose(f"ray.address='{address}'"))  # validation probes nothing
     with pytest.raises(ConfigError, match=r"^ray\.address: "):
-        prepare_job(_compose(f"ray.address='{address}'"))
+        probe_resources(job.cfg)
+
+
+def test_a_database_location_that_cannot_be_is_a_config_error() -> None:
+    job = prepare_job(_compose("db=/proc/no/such.db"))
+    with pytest.raises(ConfigError, match=r"^db: ") as info:
+        probe_resources(job.cfg)
+    assert "\n" not in str(info.value)
+
+
+def test_validation_is_pure() -> None:
+    """Validating a job imports neither the results store nor the workers (a wrong-way
+    import), so it probes neither the database nor Ray: the command does, once."""
+    code = (
+        "import sys\n"
+        "from hydra import compose, initialize_config_module\n"
+        "from comexp.experiment.config import prepare_job\n"
+        "with initialize_config_module('comexp.conf', version_base='1.3'):\n"
+        "    cfg = compose('config', overrides=['db=/proc/x.db'], return_hydra_config=True)\n"
+        "prepare_job(cfg)\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('comexp.', 'ray', 'sqlalchemy'))))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    loaded = ast.literal_eval(out.stdout.strip().splitlines()[-1])
+    assert loaded, "the check sees the modules"
+    wrong = [m for m in loaded if m.startswith(("comexp.results", "comexp.workers", "ray"))]
+    assert wrong == [], wrong
+    assert not [m for m in loaded if m.startswith("sqlalchemy")]
 
 
 def test_an_unanswered_ray_address_fails_within_the_timeout(monkeypatch) -> None:
@@ -251,3 +283,126 @@ def test_the_user_facing_config_carries_no_test_hooks() -> None:
     (COMEXP_RUNNER, COMEXP_SIMULATOR_FACTORY), not through `execution.*`."""
     exp = to_experiment(_compose())
     assert not {"runner", "simulator_factory"} & set(vars(exp.execution))
+
+
+# --- documented defaults are the config's ---------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+# Defaults the docs quote in prose: (config key, file, pattern whose group 1 is the value).
+# Maintained by hand: a default quoted somewhere new belongs here.
+PROSE_DEFAULTS = [
+    ("workers", "docs/operations.md", r"`workers` actors \(default (\d+)\)"),
+    ("camera.fps", "docs/method.md", r"Default `camera\.fps = ([\d.]+)`"),
+    ("episode.push_length_cm", "docs/method.md", r"`episode\.push_length_cm`, ([\d.]+) cm"),
+    (
+        "episode.recenter_beyond_cm",
+        "docs/method.md",
+        r"`episode\.recenter_beyond_cm` \(config; ([\d.]+) cm\)",
+    ),
+]
+# Keys the README's config table must list with their default.
+README_TABLE_KEYS = {
+    "backend",
+    "floor",
+    "speed",
+    "pusher.mu",
+    "floor.mu",
+    "grid.coms_per_object",
+    "grid.izz_scales",
+    "episode.push_length_cm",
+    "episode.recenter_beyond_cm",
+    "estimator.theta_T",
+    "estimator.method",
+    "camera.fps",
+    "workers",
+    "ray.address",
+    "db",
+    "seed",
+}
+
+
+def _config_value(cfg, key: str):
+    """A key's default: the group's choice for a config group, else the composed value."""
+    from omegaconf import OmegaConf
+
+    choices = cfg.hydra.runtime.choices
+    if key in choices:
+        return choices[key]
+    if OmegaConf.select(cfg, key) is None and "." not in key:  # a knob named without its node
+        (key,) = [f"{node}.{key}" for node in cfg if OmegaConf.select(cfg, f"{node}.{key}")]
+    node = OmegaConf.select(cfg, key, throw_on_missing=True)
+    return OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
+
+
+def _readme_table_defaults() -> dict[str, str]:
+    """`| `name`[, `.knob`...] | meaning | `default`[, `default`...] |` rows of the README."""
+    import re
+
+    out: dict[str, str] = {}
+    for line in (ROOT / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
+        if len(cells) != 3 or not cells[0].startswith("`"):
+            continue
+        names = re.findall(r"`([\w.]+)`", cells[0])
+        values = re.findall(r"`([^`]*)`", cells[2])
+        if not values:
+            continue  # "all 20": prose, not a value
+        full = [names[0], *(names[0].rpartition(".")[0] + n for n in names[1:])]
+        if len(full) != len(values):
+            continue
+        out.update(zip(full, values, strict=True))
+    return out
+
+
+def test_documented_defaults_are_the_configs() -> None:
+    """A default the README's config table or the docs' prose quotes (e.g.
+    `grid.coms_per_object` 10, `workers` 2, `camera.fps` 30) is the composed config's."""
+    import re
+
+    import yaml
+
+    cfg = _compose()
+    documented = _readme_table_defaults()
+    assert set(documented) >= README_TABLE_KEYS, README_TABLE_KEYS - set(documented)
+    wrong = []
+    for key, text in sorted(documented.items()):
+        value = _config_value(cfg, key)
+        if yaml.safe_load(text) != value:
+            wrong.append(f"README.md: {key} documented {text!r}, config {value!r}")
+    for key, rel, pattern in PROSE_DEFAULTS:
+        m = re.search(pattern, (ROOT / rel).read_text())
+        assert m, f"{rel}: the default of {key} is no longer quoted as {pattern!r}"
+        if yaml.safe_load(m.group(1)) != _config_value(cfg, key):
+            wrong.append(
+                f"{rel}: {key} documented {m.group(1)!r}, config {_config_value(cfg, key)!r}"
+            )
+    # "`key=value` (the default)" / "default `key=value`" anywhere in the docs
+    forms = (r"`([\w.]+)=([^`]+)` \(the default\)", r"default `([\w.]+)=([^`]+)`")
+    for doc in DOC_FILES:
+        for form in forms:
+            for m in re.finditer(form, doc.read_text()):
+                value = _config_value(cfg, m.group(1))
+                if yaml.safe_load(m.group(2)) != value:
+                    wrong.append(
+                        f"{doc.name}: {m.group(1)} documented {m.group(2)!r}, config {value!r}"
+                    )
+    assert not wrong, "\n".join(wrong)
+
+
+def test_defaults_are_written_once() -> None:
+    """conf/config.yaml restates no value of the schema (it holds the group choices and
+    Hydra's settings); the report labels and the grid take theirs from the config classes."""
+    import yaml
+
+    from comexp.experiment.config import CameraConfig, EpisodeConfig
+    from comexp.results.reports import PROTOCOL_DEFAULTS
+
+    primary = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())
+    assert set(primary) == {"defaults", "hydra"}, set(primary) - {"defaults", "hydra"}
+    assert {
+        "mass_kg": EpisodeConfig.mass_kg,
+        "push_length_cm": EpisodeConfig.push_length_cm,
+        "recenter_beyond_cm": EpisodeConfig.recenter_beyond_cm,
+        "camera_fps": CameraConfig.fps,
+    } == PROTOCOL_DEFAULTS

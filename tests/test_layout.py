@@ -1,10 +1,12 @@
-"""The package reads as the architecture: one room per concern, the module names the README
-documents importable as the very modules in their room (no copies), the entry points and the
-config tree where pyproject says."""
+"""The package reads as the architecture: one room per concern, the short module names the
+README documents as thin re-export modules (the very objects of their room, no copies, no import
+hook), the entry points and the config tree where pyproject says."""
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import re
 import subprocess
 import sys
 from importlib.metadata import entry_points
@@ -24,16 +26,89 @@ ROOMS = {
 
 def test_top_level_holds_only_the_package_and_its_rooms():
     top = {p.name for p in (ROOT / "comexp").iterdir() if not p.name.startswith((".", "__pyc"))}
-    assert top == {"__init__.py", "method", "experiment", "results", "cli"}
+    shorts = {f"{m.rpartition('.')[2]}.py" for m in SHORT}
+    assert top == {"__init__.py", "method", "experiment", "results", "cli"} | shorts
     for room, modules in ROOMS.items():
         files = {p.stem for p in (ROOT / "comexp" / room).glob("*.py")} - {"__init__"}
         assert modules <= files, room
 
 
-@pytest.mark.parametrize("alias, real", sorted(comexp._ALIASES.items()))
-def test_documented_names_are_the_modules_in_their_rooms(alias, real):
-    assert importlib.import_module(alias) is importlib.import_module(real)
-    assert importlib.import_module(real).__spec__.name == real  # not renamed by the alias
+# the short names the README and docs use -> the module in its room they re-export
+SHORT = {
+    "comexp.estimator": "comexp.method.estimator",
+    "comexp.perception": "comexp.method.perception",
+    "comexp.scene": "comexp.method.scene",
+    "comexp.objects": "comexp.experiment.objects",
+    "comexp.simulator": "comexp.experiment.simulator",
+    "comexp.reports": "comexp.results.reports",
+}
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+FILE_NAMES = {"comexp.log"}  # Hydra's job log, written `comexp.log` in the docs: not a name
+
+
+def test_the_short_names_are_the_re_export_modules():
+    assert {f"comexp.{n}" for n in comexp.SHORT_MODULES} == set(SHORT)
+    shorts = {p.stem for p in (ROOT / "comexp").glob("*.py")} - {"__init__"}
+    assert {f"comexp.{n}" for n in shorts} == set(SHORT)
+
+
+@pytest.mark.parametrize("short, real", sorted(SHORT.items()))
+def test_a_short_name_re_exports_the_very_objects_of_its_room(short, real):
+    mod, room = importlib.import_module(short), importlib.import_module(real)
+    assert mod.__all__, short
+    for name in mod.__all__:
+        assert getattr(mod, name) is getattr(room, name), f"{short}.{name}"
+    assert getattr(comexp, short.rpartition(".")[2]) is mod
+    assert room.__spec__.name == real  # the real module keeps its own name
+    first = (mod.__doc__ or "").splitlines()[0]
+    assert f"`{real}`" in first, f"{short}: the docstring names the module it re-exports"
+
+
+def test_no_import_hook():
+    """Plain imports: nothing of comexp's in the import system (IDEs, type checkers and
+    readers follow every name)."""
+    code = (
+        "import sys, comexp, comexp.estimator, comexp.reports\n"
+        "hooks = [f for f in sys.meta_path if type(f).__module__.startswith('comexp')]\n"
+        "assert not hooks, hooks\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _resolve(dotted: str) -> object:
+    """The object a dotted name names: its longest importable module prefix, then attributes."""
+    parts = dotted.split(".")
+    for n in range(len(parts), 0, -1):
+        try:
+            obj: object = importlib.import_module(".".join(parts[:n]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[n:]:
+            obj = getattr(obj, attr)
+        return obj
+    raise ModuleNotFoundError(dotted)
+
+
+def test_names_the_docs_use_resolve():
+    """Every dotted `comexp.` name and `from comexp... import <names>` of the README and docs/
+    names something that exists (the short names among them)."""
+    names = set()
+    for doc in DOCS:
+        text = doc.read_text()
+        for m in re.finditer(r"`(comexp(?:\.[A-Za-z_]\w*)+)", text):
+            if m.group(1) not in FILE_NAMES:
+                names.add((doc.name, m.group(1)))
+        for m in re.finditer(r"from (comexp(?:\.\w+)*) import ([\w, ]+)", text):
+            names |= {(doc.name, f"{m.group(1)}.{n.strip()}") for n in m.group(2).split(",")}
+    bad = []
+    for where, dotted in sorted(names):
+        try:
+            _resolve(dotted)
+        except (ImportError, AttributeError) as e:
+            bad.append(f"{where}: {dotted} ({e})")
+    assert not bad, "\n".join(bad)
+    shorts = {d.split(".")[1] for _, d in names} & set(comexp.SHORT_MODULES)
+    assert shorts == set(comexp.SHORT_MODULES), "the docs use every short name"
 
 
 def test_documented_names_in_a_fresh_interpreter():
@@ -45,7 +120,7 @@ def test_documented_names_in_a_fresh_interpreter():
         "assert callable(comexp.load_results) and callable(comexp.replay)\n"
         "assert group_episodes.__module__ == 'comexp.results.reports'\n"
         "import comexp.method.estimator as m\n"
-        "assert comexp.estimator is m\n"
+        "assert comexp.estimator.estimate_com is m.estimate_com\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 

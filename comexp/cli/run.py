@@ -8,19 +8,25 @@
 
 Bad input is rejected before anything is written: `ValidateCallback` checks every job of a run
 or multirun before Hydra creates an output folder, and `main` reduces Hydra's and our own
-errors to one line and a non-zero exit. The driver alone writes the database, as results
-arrive; rerunning a command skips the episodes already stored.
+errors to one line and a non-zero exit. `--cfg` with `-m` (which Hydra refuses) prints every
+job's config from the same callback (`ShowJobs`). Hydra's public APIs only (callbacks, the
+config loader's sweep configs, the override parser): no `hydra._internal`, nothing patched.
+The driver alone writes the database, as results arrive; rerunning a command skips the
+episodes already stored.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
+import itertools
 import logging
 import os
 import shlex
 import subprocess
 import sys
 import urllib.parse
+from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -28,9 +34,15 @@ from typing import Any
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from comexp.experiment.config import ConfigError, PreparedJob, prepare_job, simulator_options
+from comexp.experiment.config import (
+    ConfigError,
+    ExperimentConfig,
+    PreparedJob,
+    prepare_job,
+    simulator_options,
+)
 from comexp.experiment.grid import expand_grid
 from comexp.experiment.objects import yaml_error_line
 
@@ -74,27 +86,55 @@ class Abort(BaseException):  # noqa: N818 - not an error class: a controlled exi
 
 
 def _sweep_job_overrides(config: DictConfig) -> list[list[str]] | None:
-    """The override lists of every job the basic sweeper will launch (None for other
-    sweepers, whose jobs are only known while they run)."""
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    """The override lists of every job Hydra's basic sweeper (the default) will launch, in its
+    launch order: the cartesian product of the sweeps of `hydra.sweeper.params` and of the
+    command line, one value per key. None for other sweepers, whose jobs are only known while
+    they run. Public APIs only: the config's group choices and Hydra's override parser."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
 
-    target = OmegaConf.select(config, "hydra.sweeper._target_")
-    if target != "hydra._internal.core_plugins.basic_sweeper.BasicSweeper":
+    if OmegaConf.select(config, "hydra.runtime.choices")["hydra/sweeper"] != "basic":
         return None
     params = OmegaConf.select(config, "hydra.sweeper.params") or {}
     args = [f"{k}={v}" for k, v in params.items()]
     args += list(OmegaConf.to_container(config.hydra.overrides.task, resolve=False))
-    parsed = OverridesParser.create().parse_overrides(args)
-    return [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
+    values: dict[str, list[str]] = {}  # key -> its "key=value" choices; a later one wins
+    for override in OverridesParser.create().parse_overrides(args):
+        key = override.get_key_element()
+        if not override.is_sweep_override():
+            values[key] = [f"{key}={override.get_value_element_as_str()}"]
+        elif override.is_discrete_sweep():
+            values[key] = [f"{key}={v}" for v in override.sweep_string_iterator()]
+        else:
+            raise HydraException(f"the basic sweeper does not sweep {override.value_type.name}")
+    return [list(job) for job in itertools.product(*values.values())]
+
+
+def probe_resources(exp: ExperimentConfig) -> None:
+    """What the job needs outside itself, probed once before anything is written: a database
+    location that can hold the database, and a Ray address where something listens. Raises
+    `ConfigError` naming the key."""
+    from comexp.results.store import check_location
+    from comexp.workers.session import check_ray_address
+
+    try:
+        check_location(exp.db)
+    except ValueError as e:
+        raise ConfigError(f"db: {e}") from None
+    try:
+        check_ray_address(exp.ray.address)
+    except ValueError as e:
+        raise ConfigError(f"ray.address: {e}") from None
 
 
 class ValidateCallback(Callback):
-    """Checks every job's config (types, values, objects, database location) up front."""
+    """Checks every job's config (types, values, objects) and probes its database location
+    and Ray address (`probe_resources`), once per job, up front; with `--cfg` and `-m`, prints
+    every job's config instead (`ShowJobs`)."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         try:
-            prepare_job(config)
+            probe_resources(prepare_job(config).cfg)
         except ConfigError as e:
             raise Abort(str(e), EXIT_BAD_INPUT) from None
 
@@ -103,18 +143,109 @@ class ValidateCallback(Callback):
 
         jobs = _sweep_job_overrides(config)
         if jobs is None:
+            if _show_jobs is not None:
+                raise Abort("--cfg with -m works with Hydra's basic sweeper only", EXIT_BAD_INPUT)
             return
         loader = GlobalHydra.instance().config_loader()
+        job_cfgs = []
         for overrides in jobs:
             try:
-                job_cfg = loader.load_sweep_config(config, list(overrides))
+                job_cfgs.append(loader.load_sweep_config(config, list(overrides)))
             except Exception as e:
                 raise Abort(_hydra_error_line(e), EXIT_BAD_INPUT) from None
+        if _show_jobs is not None:
+            _show_jobs.print(jobs, job_cfgs)
+            raise Abort("", 0)  # printed: nothing runs, nothing is created
+        probed: set[tuple[str, str | None]] = set()  # jobs share a database and Ray: once each
+        for overrides, job_cfg in zip(jobs, job_cfgs, strict=True):
             try:
-                prepare_job(job_cfg)
+                exp = prepare_job(job_cfg).cfg
+                if (exp.db, exp.ray.address) not in probed:
+                    probe_resources(exp)
+                    probed.add((exp.db, exp.ray.address))
             except ConfigError as e:
                 where = " ".join(overrides)
                 raise Abort(f"{e} (job: {where})" if where else str(e), EXIT_BAD_INPUT) from None
+
+
+# --- `--cfg` with `-m`: every job's config ---------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ShowJobs:
+    """`--cfg TYPE [-p PACKAGE] [--resolve]` with `-m`: Hydra refuses the pair, but "what will
+    this sweep run?" is a fair question. `main` takes these flags off the command line and runs
+    the multirun; `ValidateCallback.on_multirun_start` composes every job, prints one YAML
+    document per job in launch order, each headed by its overrides, and stops before the
+    sweeper launches anything. Like `--cfg` alone, it checks types, not values."""
+
+    cfg_type: str  # job | hydra | all
+    package: str | None = None
+    resolve: bool = False
+
+    @classmethod
+    def split(cls, argv: list[str]) -> tuple[ShowJobs, list[str]] | None:
+        """(the request, `argv` without its flags) when `argv` has both `-m` and `--cfg`."""
+        if not any(a in ("-m", "--multirun") for a in argv):
+            return None
+        found: dict[str, str] = {}
+        rest: list[str] = []
+        args = iter(argv)
+        for a in args:
+            flag, eq, value = a.partition("=")
+            name = {"-c": "cfg", "--cfg": "cfg", "-p": "package", "--package": "package"}.get(flag)
+            if name is not None and flag.startswith("--") and eq:
+                found[name] = value
+            elif name is not None and not eq:
+                found[name] = next(args, "")
+            elif a == "--resolve":
+                found["resolve"] = "1"
+            else:
+                rest.append(a)
+        if found.get("cfg") not in ("job", "hydra", "all"):
+            return None  # no --cfg (or a bad one: Hydra's own parser says so)
+        return cls(found["cfg"], found.get("package"), "resolve" in found), rest
+
+    def print(self, jobs: list[list[str]], job_cfgs: list[DictConfig]) -> None:
+        docs = []
+        for num, (job, job_cfg) in enumerate(zip(jobs, job_cfgs, strict=True)):
+            with open_dict(job_cfg):  # as Hydra's basic launcher and run_job do (nothing created)
+                job_cfg.hydra.job.id = num
+                job_cfg.hydra.job.num = num
+                sweep = job_cfg.hydra.sweep
+                job_cfg.hydra.runtime.output_dir = str(
+                    Path(str(sweep.dir), str(sweep.subdir)).absolute()
+                )
+            HydraConfig.instance().set_config(job_cfg)  # for `${hydra:...}` when resolving
+            OmegaConf.set_readonly(job_cfg.hydra, None)
+            node: Any = self._part(job_cfg)
+            if self.package not in (None, "_global_"):
+                node = OmegaConf.select(node, self.package)
+                if node is None:
+                    raise Abort(f"package {self.package!r} not found in config", EXIT_BAD_INPUT)
+            if OmegaConf.is_config(node):
+                body = OmegaConf.to_yaml(node, resolve=self.resolve)
+            else:
+                body = f"{node}\n"
+            docs.append(f"# job {num}: {' '.join(job)}\n{body}")
+        sys.stdout.write("---\n".join(docs))
+
+    def _part(self, cfg: DictConfig) -> DictConfig:
+        """What `--cfg TYPE` shows: the job's own config, Hydra's node (less its help
+        texts), or both."""
+        cfg = copy.deepcopy(cfg)
+        with open_dict(cfg), read_write(cfg):
+            if self.cfg_type == "job":
+                del cfg["hydra"]
+            elif self.cfg_type == "hydra":
+                for key in [k for k in cfg if k != "hydra"]:
+                    del cfg[key]
+                del cfg.hydra["hydra_help"]
+                del cfg.hydra["help"]
+        return cfg
+
+
+_show_jobs: ShowJobs | None = None  # set by `main` for `--cfg` with `-m`
 
 
 # --- one job -----------------------------------------------------------------------------------
@@ -194,7 +325,8 @@ def _scrub_hydra_files(url: str) -> None:
 
 
 def run_job(cfg: DictConfig) -> dict[str, Any]:
-    """Validate, expand the grid, run what is not stored yet, write the job's reports."""
+    """Validate, expand the grid, run what is not stored yet, write the job's reports (the
+    validate callback has probed the database location and Ray before Hydra wrote anything)."""
     from comexp.results.identity import episode_key
     from comexp.results.store import redact_url
     from comexp.workers.driver import Progress, run_and_store
@@ -222,7 +354,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         summary: dict[str, Any] = {"episodes": len(specs), "skipped": len(specs) - len(todo)}
         if todo:
             # Ray first: a cluster that cannot be joined leaves no sweep row behind
-            # (`prepare_job` has already rejected an address where nothing listens).
+            # (`probe_resources` has already rejected an address where nothing listens).
             ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
             hc = HydraConfig.get()
             job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
@@ -276,84 +408,14 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
 def _app(cfg: DictConfig) -> dict[str, Any]:
     from comexp.workers.pool import PoolError
 
+    if _show_jobs is not None:  # `ValidateCallback` prints and stops before any job runs
+        raise Abort("--cfg with -m: a job started (is hydra.callbacks.validate set?)", 1)
     try:
         return run_job(cfg)
     except ConfigError as e:
         raise Abort(str(e), EXIT_BAD_INPUT) from None
     except PoolError as e:
         raise Abort(str(e), EXIT_FAILED) from None
-
-
-# --- `--cfg` with `-m`: every job's config ---------------------------------------------------
-
-
-def _show_sweep_cfg(
-    self: Any,
-    config_name: str | None,
-    overrides: list[str],
-    cfg_type: str,
-    package: str | None,
-    resolve: bool = False,
-) -> None:
-    """Stands in for `Hydra.show_cfg` when `-m` comes with `--cfg`: Hydra refuses the pair, but
-    "what will this sweep run?" is a fair question. Prints one YAML document per job, in launch
-    order, each headed by its overrides; like `--cfg` alone, it checks types, not values."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-    from omegaconf import open_dict
-
-    cfg = self.compose_config(
-        config_name=config_name,
-        overrides=overrides,
-        run_mode=RunMode.MULTIRUN,
-        with_log_configuration=False,
-    )
-    jobs = _sweep_job_overrides(cfg)
-    if jobs is None:
-        raise Abort("--cfg with -m works with Hydra's basic sweeper only", EXIT_BAD_INPUT)
-    docs = []
-    for num, job in enumerate(jobs):
-        job_cfg = self.config_loader.load_sweep_config(cfg, list(job))
-        with open_dict(job_cfg):  # as Hydra's basic launcher and run_job do (nothing created)
-            job_cfg.hydra.job.id = num
-            job_cfg.hydra.job.num = num
-            sweep = job_cfg.hydra.sweep
-            out_dir = Path(str(sweep.dir), str(sweep.subdir)).absolute()
-            job_cfg.hydra.runtime.output_dir = str(out_dir)
-        HydraConfig.instance().set_config(job_cfg)
-        OmegaConf.set_readonly(job_cfg.hydra, None)
-        node: Any = self.get_sanitized_cfg(job_cfg, cfg_type)
-        if package not in (None, "_global_"):
-            node = OmegaConf.select(node, package)
-            if node is None:
-                raise Abort(f"package {package!r} not found in config", EXIT_BAD_INPUT)
-        if OmegaConf.is_config(node):
-            body = OmegaConf.to_yaml(node, resolve=resolve)
-        else:
-            body = f"{node}\n"
-        docs.append(f"# job {num}: {' '.join(job)}\n{body}")
-    sys.stdout.write("---\n".join(docs))
-
-
-@contextlib.contextmanager
-def _cfg_per_sweep_job() -> Any:
-    from hydra._internal.hydra import Hydra
-
-    original = Hydra.show_cfg
-    Hydra.show_cfg = _show_sweep_cfg  # type: ignore[method-assign]
-    try:
-        yield
-    finally:
-        Hydra.show_cfg = original  # type: ignore[method-assign]
-
-
-def _split_multirun_cfg(argv: list[str]) -> list[str] | None:
-    """`argv` without `-m`/`--multirun` when it also asks for `--cfg`; None otherwise."""
-    multirun = [a for a in argv if a in ("-m", "--multirun")]
-    show_cfg = any(a in ("-c", "--cfg") or a.startswith("--cfg=") for a in argv)
-    if not (multirun and show_cfg):
-        return None
-    return [a for a in argv if a not in multirun]
 
 
 # --- error reporting ----------------------------------------------------------------------------
@@ -422,16 +484,15 @@ def main() -> None:
     user_full = os.environ.get("HYDRA_FULL_ERROR") == "1"
     os.environ["HYDRA_FULL_ERROR"] = "1"
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    show_per_job = _split_multirun_cfg(sys.argv[1:])
+    global _show_jobs
+    show = ShowJobs.split(sys.argv[1:])
+    if show is not None:
+        _show_jobs, sys.argv[1:] = show
     try:
-        if show_per_job is None:
-            _app()
-        else:
-            sys.argv[1:] = show_per_job
-            with _cfg_per_sweep_job():
-                _app()
+        _app()
     except Abort as e:
-        _die(e.message, e.code)
+        if e.code:
+            _die(e.message, e.code)
     except KeyboardInterrupt:
         _die(
             "interrupted; finished episodes are stored, run the same command to resume",

@@ -1,10 +1,16 @@
 """Structured configuration of one experiment job, its validation, and object lookup.
 
+The dataclasses below are the one place every default is written (push length, re-centring
+distance, mass, camera rate, grid, workers, ...): conf/config.yaml holds only the group choices
+and Hydra's own settings, and other modules derive their defaults from these classes
+(tests/test_config.py checks README.md and docs/ against them).
+
 The dataclasses below are registered in Hydra's ConfigStore as the schema of `conf/config.yaml`,
 so a wrong *type* (``speed=abc``) is rejected by Hydra while composing. Wrong *values*
-(negative speed, unknown object, unwritable database, ...) are caught by `prepare_job`, which
-the CLI runs before Hydra creates any output folder (see `comexp.cli.run`): bad input must cost
-nothing and leave nothing behind.
+(negative speed, unknown object, ...) are caught by `prepare_job`, which the CLI runs before
+Hydra creates any output folder (see `comexp.cli.run`): bad input must cost nothing and leave
+nothing behind. Validation is pure: it imports neither the results store nor the workers, and
+probes neither the database nor Ray (the command does, once: `comexp.cli.run.probe_resources`).
 """
 
 from __future__ import annotations
@@ -18,8 +24,8 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
-from comexp.experiment.episode import EstimatorSettings
 from comexp.experiment.objects import ObjectDef, load_objects
+from comexp.method.estimator import EstimatorSettings
 
 FLOOR_KINDS = ("iso", "aniso")
 ANISO_ORIENTATIONS = ("xy", "yx")
@@ -35,7 +41,7 @@ class ConfigError(ValueError):
 
 @dataclass
 class BackendConfig:
-    name: str = "pybullet"  # planar | pybullet | mujoco
+    name: str = MISSING  # the `backend` group's option (default: conf/config.yaml's defaults list)
     # engines only: "model" = the shared footprint friction model applied as a force each step
     # (the engine's own object-floor friction off); "native" = the engine's own friction
     floor_friction: str = "model"
@@ -79,6 +85,7 @@ class EpisodeConfig:
 
     push_length_cm: float = 3.0  # how far the pusher goes past the contact point (paper: 3 cm)
     recenter_beyond_cm: float = 10.0  # put the object back at the centre beyond this; 0: never
+    mass_kg: float = 0.2  # the object's mass (paper: 0.2 kg)
 
 
 # A commodity depth camera (RealSense D4xx, Azure Kinect, ...) streams depth at up to 30 fps.
@@ -139,7 +146,7 @@ class EstimatorConfig:
     band_signed: bool = _EST.band_signed
     contact_spacing: float = _EST.contact_spacing_px  # px
     check_reachability: bool = _EST.check_reachability
-    method: str = _EST.method  # paper | magnitude
+    method: str = _EST.method  # paper | magnitude | my_pkg.module:MyEstimator (a plug-in)
     mag_noise: float = _EST.mag_noise_deg  # deg
     mag_rel_noise: float = _EST.mag_rel_noise
     mag_floor_model: bool = _EST.mag_floor_model
@@ -304,6 +311,8 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     ep = cfg.episode
     if not _finite(ep.push_length_cm) or ep.push_length_cm <= 0:
         raise ConfigError(f"episode.push_length_cm must be > 0, got {ep.push_length_cm!r}")
+    if not _finite(ep.mass_kg) or ep.mass_kg <= 0:
+        raise ConfigError(f"episode.mass_kg must be > 0, got {ep.mass_kg!r}")
     if not _finite(ep.recenter_beyond_cm) or ep.recenter_beyond_cm < 0:
         msg = f"episode.recenter_beyond_cm must be >= 0 (0: never), got {ep.recenter_beyond_cm!r}"
         raise ConfigError(msg)
@@ -367,8 +376,9 @@ class PreparedJob:
 
 
 def prepare_job(cfg: DictConfig) -> PreparedJob:
-    """Typed config + validation + objects + database location + a reachable Ray address;
-    raises `ConfigError`.
+    """Typed config + validation + objects; raises `ConfigError`. Pure: it reads the job's
+    config and its object files, and probes nothing outside (the database location and the Ray
+    address are the command's to probe, once: `comexp.cli.run.probe_resources`).
 
     Objects are looked up in the job's config sources: `cfg.hydra` in a callback's view of the
     config, `HydraConfig` inside the task function.
@@ -384,16 +394,4 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
         objects = load_objects(exp.grid.objects, OmegaConf.to_container(sources, resolve=False))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    from comexp.results.store import check_location
-
-    try:
-        check_location(exp.db)
-    except ValueError as e:
-        raise ConfigError(f"db: {e}") from None
-    from comexp.workers.session import check_ray_address
-
-    try:
-        check_ray_address(exp.ray.address)
-    except ValueError as e:
-        raise ConfigError(f"ray.address: {e}") from None
     return PreparedJob(cfg=exp, estimator=est, objects=objects)

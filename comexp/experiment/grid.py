@@ -13,7 +13,8 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_options
-from comexp.experiment.episode import EpisodeSpec, EstimatorSettings
+from comexp.experiment.episode import EpisodeSpec
+from comexp.method.estimator import EstimatorSettings
 
 
 class ObjectLike(Protocol):
@@ -75,6 +76,7 @@ def expand_grid(
                 seed=episode_seed(cfg.seed, name, k),
                 push_length_cm=float(cfg.episode.push_length_cm),
                 recenter_beyond_cm=float(cfg.episode.recenter_beyond_cm),
+                mass_kg=float(cfg.episode.mass_kg),
                 physics=physics,
                 camera_fps=float(cfg.camera.fps),
             )

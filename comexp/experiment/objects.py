@@ -119,7 +119,12 @@ class ObjectDef:
         return geometry.convex_decomposition(self.outline_cm)
 
     def model(
-        self, com_cm: Sequence[float], *, izz_scale: float, mu_pusher: float, mass_kg: float = 0.2
+        self,
+        com_cm: Sequence[float],
+        *,
+        izz_scale: float,
+        mu_pusher: float,
+        mass_kg: float | None = None,
     ) -> ObjectSpec:
         """The simulator's rigid body of this object with its CoM at `com_cm` (`object_model`)."""
         return object_model(
@@ -241,10 +246,15 @@ def object_model(
     *,
     izz_scale: float,
     mu_pusher: float,
-    mass_kg: float = 0.2,
+    mass_kg: float | None = None,
 ) -> ObjectSpec:
     """The simulator's rigid-body model (SI units) of an object definition (cm) with its CoM at
-    `com_cm`: the one conversion, used by every episode (`episode.build_scene`)."""
+    `com_cm`: the one conversion, used by every episode (`episode.build_scene`). `mass_kg`
+    None: the config's default (`episode.mass_kg`)."""
+    if mass_kg is None:
+        from comexp.experiment.config import EpisodeConfig  # config imports this module
+
+        mass_kg = EpisodeConfig.mass_kg
     return geometry.prism_object(
         name,
         [(x / 100.0, y / 100.0) for x, y in outline_cm],

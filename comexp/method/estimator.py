@@ -25,13 +25,22 @@ paper") also uses how much the object turns: within the region the signs allow, 
 point whose lever arms (P_i - G) x N_i best explain the measured rotations with one per-episode
 gain, rot_i ~ k f((P_i - G) x N_i) (f linear, or saturating as the impact's l / (rho^2 + l^2)).
 Same API: `estimate_com(..., settings=EstimatorSettings(method="magnitude"))`.
+
+A researcher's own estimator plugs in from config without editing the package:
+`estimator.method=my_pkg.module:MyEstimator` (or `my_pkg.module.MyEstimator`) names a class
+that implements the `Estimator` protocol and takes `ComEstimator`'s constructor arguments;
+`make_estimator` builds the built-in one or the plug-in from the settings (see
+`resolve_estimator`). Its module must be importable where episodes run (installed, or on
+PYTHONPATH, which a local Ray's workers inherit).
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import shapely
@@ -106,7 +115,12 @@ class EstimatorSettings:
         if self.contact_spacing_px <= 0:
             raise ValueError("contact_spacing_px must be > 0")
         if self.method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+            if not is_plugin(self.method):
+                raise ValueError(
+                    f"method must be one of {METHODS} or a plug-in 'module:Class', "
+                    f"got {self.method!r}"
+                )
+            resolve_estimator(self.method)  # a plug-in that cannot be used fails here, in one line
         if not (math.isfinite(self.mag_noise_deg) and self.mag_noise_deg > 0):
             raise ValueError(f"mag_noise_deg must be > 0, got {self.mag_noise_deg!r}")
         if not (math.isfinite(self.mag_rel_noise) and self.mag_rel_noise >= 0):
@@ -443,6 +457,10 @@ def estimate_com(
     region (sign-consistent; on a grid `SUBPIXEL` times finer).
     """
     settings = settings or EstimatorSettings()
+    if settings.method not in METHODS:
+        raise ValueError(
+            f"estimate_com runs the built-in methods {METHODS}, not {settings.method!r}"
+        )
     region = np.asarray(region_m, dtype=float)
     post = MagnitudePosterior(region, pixel_m, settings) if settings.method == "magnitude" else None
     for push in pushes:
@@ -481,6 +499,8 @@ class ComEstimator:
         pusher_radius_m: float | None = None,
     ) -> None:
         self.settings = settings or EstimatorSettings()
+        if self.settings.method not in METHODS:  # never run a plug-in's episodes as the paper's
+            raise ValueError(f"method {self.settings.method!r} is a plug-in: use make_estimator")
         self.region = np.asarray(region_m, dtype=float)
         self.pixel_m = float(pixel_m)
         self.posterior = (
@@ -542,3 +562,93 @@ class ComEstimator:
         if self.posterior is not None:
             self.posterior.observe(contact_m, direction, rotation_deg)
         return decision
+
+
+# --- plug-in estimators ----------------------------------------------------------------------
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """What an episode needs of an estimator (`ComEstimator` is the built-in one). A plug-in
+    class is constructed as `Cls(region_m, contacts_m, normals, pixel_m, settings, outline_m=...,
+    pusher_radius_m=...)` (`make_estimator`); the frames and units are `ComEstimator`'s."""
+
+    def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(contact, inward push direction) of the next push, or None to stop."""
+        ...
+
+    def observe(
+        self,
+        contact_m: np.ndarray,
+        direction: np.ndarray,
+        rotation_deg: float,
+        line_direction: np.ndarray | None = None,
+    ) -> str:
+        """Take the measured rotation of that push; returns a short decision label."""
+        ...
+
+    @property
+    def estimate_m(self) -> np.ndarray:
+        """The current CoM estimate (2,), metres."""
+        ...
+
+    @property
+    def region_px(self) -> int:
+        """The size of the current CoM region (points), recorded per push."""
+        ...
+
+
+_PROTOCOL = ("next_push", "observe", "estimate_m", "region_px")
+
+
+def is_plugin(method: str) -> bool:
+    """`method` names a plug-in class (`module:Class` or `module.Class`), not a built-in."""
+    return method not in METHODS and (":" in method or "." in method)
+
+
+def resolve_estimator(method: str) -> type:
+    """The estimator class `method` names: `ComEstimator` for the built-in methods, else the
+    plug-in `module:Class` / `module.Class`, imported; ValueError (one line, starting with
+    `method`) when it cannot be imported or lacks the `Estimator` protocol."""
+    if method in METHODS:
+        return ComEstimator
+    module, sep, name = method.partition(":")
+    if not sep:
+        module, _, name = method.rpartition(".")
+    try:
+        cls: Any = importlib.import_module(module)
+        for part in name.split("."):
+            cls = getattr(cls, part)
+    except (ImportError, AttributeError, ValueError) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"method {method!r}: cannot import the plug-in: {msg}") from None
+    missing = [m for m in _PROTOCOL if not hasattr(cls, m)]
+    if not isinstance(cls, type) or missing:
+        raise ValueError(
+            f"method {method!r}: not an estimator class (missing: {', '.join(missing) or '-'})"
+        )
+    return cls
+
+
+def make_estimator(
+    region_m: np.ndarray,
+    contacts_m: np.ndarray,
+    normals: np.ndarray,
+    pixel_m: float,
+    settings: EstimatorSettings | None = None,
+    outline_m: np.ndarray | None = None,
+    pusher_radius_m: float | None = None,
+) -> Estimator:
+    """The estimator `settings.method` chooses (built-in `ComEstimator` or a plug-in class),
+    constructed with `ComEstimator`'s arguments."""
+    settings = settings or EstimatorSettings()
+    cls = resolve_estimator(settings.method)
+    return cls(
+        region_m,
+        contacts_m,
+        normals,
+        pixel_m,
+        settings,
+        outline_m=outline_m,
+        pusher_radius_m=pusher_radius_m,
+    )

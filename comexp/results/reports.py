@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from comexp.experiment.config import CameraConfig, EpisodeConfig
 from comexp.method.estimator import EstimatorSettings
 from comexp.results import paper
 from comexp.results.filters import EpisodeFilter
@@ -62,12 +63,12 @@ CONDITION_COLUMNS: tuple[str, ...] = (
 FRICTION_COLUMNS = ("mu_floor_x", "mu_floor_y", "mu_pusher")
 # The paper's Tables II/III and Figs. 3/4 pool the friction grid and both Izz scales.
 PAPER_POOL = (*FRICTION_COLUMNS, "izz_scale")
-# Protocol columns shown in a label only when they differ from these defaults.
+# Protocol columns shown in a label only when they differ from these defaults: the config's
 PROTOCOL_DEFAULTS: dict[str, Any] = {
-    "mass_kg": 0.2,
-    "push_length_cm": 3.0,
-    "recenter_beyond_cm": 10.0,
-    "camera_fps": 30.0,
+    "mass_kg": EpisodeConfig.mass_kg,
+    "push_length_cm": EpisodeConfig.push_length_cm,
+    "recenter_beyond_cm": EpisodeConfig.recenter_beyond_cm,
+    "camera_fps": CameraConfig.fps,
 }
 _DEFAULT_ESTIMATOR: dict[str, Any] = json.loads(canonical_json(EstimatorSettings()))
 STAT_COLUMNS = ("n", "mean", "std", "max", "min")
