@@ -166,11 +166,6 @@ def test_the_command_line_takes_the_users_config_dir(user_dir: Path) -> None:
     assert r.stdout.strip().splitlines()[-1] == METHOD
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="comexp/experiment/episode.py builds ComEstimator(...) directly; with "
-    "make_estimator(...) there (a one-line change) episodes run the plug-in",
-)
 def test_an_episode_runs_the_plugin(user_dir: Path) -> None:
     from test_episode import KinematicSim, spec_for
 

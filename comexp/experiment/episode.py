@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from comexp.experiment.config import CameraConfig, EpisodeConfig
 from comexp.experiment.objects import object_model
 from comexp.experiment.simulator import Frame, Simulator, contact_push
-from comexp.method.estimator import ComEstimator, EstimatorSettings, floor_force_direction
+from comexp.method.estimator import EstimatorSettings, floor_force_direction, make_estimator
 from comexp.method.perception import (
     PerceptionError,
     PoseTracker,
@@ -37,6 +38,11 @@ __all__ = [
 ]
 
 
+# the protocol's defaults are the structured config's (one place: comexp.experiment.config)
+_EPISODE_DEFAULTS = EpisodeConfig()
+_CAMERA_DEFAULTS = CameraConfig()
+
+
 @dataclass(frozen=True)
 class EpisodeSpec:
     backend: str
@@ -51,22 +57,22 @@ class EpisodeSpec:
     height_cm: float
     com_index: int
     com_cm: tuple[float, float]  # true CoM, object frame
-    mass_kg: float = 0.2
-    push_length_cm: float = 3.0
+    mass_kg: float = _EPISODE_DEFAULTS.mass_kg
+    push_length_cm: float = _EPISODE_DEFAULTS.push_length_cm
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
     seed: int = 0
     # Protocol: after a push that leaves the object's origin farther than this from the floor
     # centre, the object is put back at the centre (same yaw, at rest) before the next image, as
     # an experimenter would; 0 disables. A 40 cm/s push slides an object ~11 cm on the mu 0.1
     # floor, so without this about 15% of 5-push episodes there leave the 0.6 m floor.
-    recenter_beyond_cm: float = 10.0
+    recenter_beyond_cm: float = _EPISODE_DEFAULTS.recenter_beyond_cm
     # What determines the physics (`comexp.experiment.simulator.physics_identity`: backend
     # model revision, engine version, backend and protocol settings); part of the episode's
     # identity, so a database is never resumed across physics versions. "" = not pinned.
     physics: str = ""
     # Tracking frames per second taken while the object moves during a push (`camera.fps`);
     # 0 = the images before and after each push only. Vision only (the oracle needs none).
-    camera_fps: float = 30.0  # the config default (`camera.fps`), measured in docs/method.md
+    camera_fps: float = _CAMERA_DEFAULTS.fps  # `camera.fps`'s default (docs/method.md)
 
     @classmethod
     def for_object(
@@ -201,7 +207,7 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
         frame0 = perc.frame_pose  # estimator frame in the world at the first image
         # estimator frame -> true object frame (evaluation only)
         frame_in_obj = _relative(true0, frame0)
-        est = ComEstimator(
+        est = make_estimator(
             perc.region_m,
             perc.contacts_m,
             perc.contact_normals,
