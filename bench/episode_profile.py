@@ -294,11 +294,13 @@ def profile(
         walls: list[float] = []
         with instrumented(sim, timer):
             t_all = time.perf_counter()
+            cpu0 = time.process_time()
             for s in specs:
                 t0 = time.perf_counter()
                 results.append(run_episode(s, sim))
                 walls.append(time.perf_counter() - t0)
             elapsed = time.perf_counter() - t_all
+            out["cpu_ms_per_ep"] = (time.process_time() - cpu0) * 1e3 / len(specs)
         out["steps_per_s_raw"] = raw_steps_per_s(sim, specs[0], raw_s)
     finally:
         sim.close()
@@ -338,6 +340,7 @@ def report(o: dict[str, Any]) -> None:
     )
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} (1, 5 min)")
     print(f"episodes/s          {o['eps_per_s']:.2f}  (elapsed {o['elapsed_s']:.1f} s)")
+    print(f"CPU ms/episode      {o['cpu_ms_per_ep']:.0f}  (this process; robust to other load)")
     print(
         f"per episode ms      mean {o['mean_ms']:.0f}  median {o['median_ms']:.0f}  "
         f"max {o['max_ms']:.0f}  (warm-up, 1st of each object: {1e3 * o['warmup_s_per_ep']:.0f})"
