@@ -346,6 +346,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
         print(f"comexp-db: error: {text[0] if text else type(exc).__name__}", file=sys.stderr)
         return 1
+    except Exception as exc:  # a bug: still one line; COMEXP_DEBUG=1 shows the traceback
+        if os.environ.get("COMEXP_DEBUG") == "1":
+            raise
+        text = str(exc).strip().splitlines()
+        detail = f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+        print(
+            f"comexp-db: error: internal error ({detail}); COMEXP_DEBUG=1 shows where",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 
