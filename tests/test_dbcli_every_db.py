@@ -6,6 +6,7 @@ Each command gives a result, or one line saying what is missing; never a traceba
 from __future__ import annotations
 
 import itertools
+import json
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
@@ -95,14 +96,21 @@ def _commands(out_dir: Path) -> dict[str, list[str]]:
     return {
         "table": ["table"],
         "table_csv": ["table", "--format", "csv"],
+        "table_json": ["table", "--format", "json"],
         "summary": ["summary"],
         "summary_csv": ["summary", "--format", "csv"],
+        "summary_json": ["summary", "--format", "json"],
         "paper": ["paper"],
+        "paper_json": ["paper", "--format", "json"],
         "claims": ["claims"],
+        "claims_json": ["claims", "--format", "json"],
         "episodes": ["episodes"],
         "episodes_csv": ["episodes", "--format", "csv"],
+        "episodes_json": ["episodes", "--format", "json"],
         "sweeps": ["sweeps"],
+        "sweeps_json": ["sweeps", "--format", "json"],
         "sweeps_show": ["sweeps", "--show", "1"],
+        "sweeps_show_json": ["sweeps", "--show", "1", "--format", "json"],
         "plot": ["plot", "--out", str(out_dir / "plots")],
         "show": ["show", "1", "--out", str(out_dir / "episode.png")],
     }
@@ -112,12 +120,13 @@ COMMANDS = list(_commands(Path("x")))
 # An error exit is right only where the user asked for something the database does not hold.
 EXPECTED_ERRORS = {
     ("empty", "sweeps_show"): "no sweep with id 1",
+    ("empty", "sweeps_show_json"): "no sweep with id 1",
     ("empty", "show"): "no episode with id 1 (none stored)",
     ("job_started", "show"): "no episode with id 1 (none stored)",
 }
 
 
-def _check(code: int, out: str, err: str, expected_error: str | None) -> None:
+def _check(code: int, out: str, err: str, expected_error: str | None, command: str = "") -> None:
     assert "Traceback" not in err and "Traceback" not in out
     lines = err.splitlines()
     assert len(lines) <= 1, err  # at most one line saying what is missing
@@ -128,6 +137,8 @@ def _check(code: int, out: str, err: str, expected_error: str | None) -> None:
     else:
         assert code == 0, err
         assert out.strip() or err.strip(), "neither a result nor a note"
+        if "--format json" in command:
+            json.loads(out)  # one strict JSON document, even when empty
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -138,16 +149,17 @@ def test_every_command_on_every_database(
     argv = ["--db", str(databases[name]), *_commands(tmp_path)[command]]
     code = main(argv)
     out, err = capsys.readouterr()
-    _check(code, out, err, EXPECTED_ERRORS.get((name, command)))
+    _check(code, out, err, EXPECTED_ERRORS.get((name, command)), " ".join(argv))
 
 
 @pytest.mark.parametrize("command", COMMANDS)
 def test_every_command_on_a_database_being_written(
     being_written: Path, command: str, tmp_path: Path, capsys
 ) -> None:
-    code = main(["--db", str(being_written), *_commands(tmp_path)[command]])
+    argv = ["--db", str(being_written), *_commands(tmp_path)[command]]
+    code = main(argv)
     out, err = capsys.readouterr()
-    _check(code, out, err, None)
+    _check(code, out, err, None, " ".join(argv))
     if command == "sweeps":
         assert out.count("| comexp |") == 1  # the writer's sweep is not visible yet
     if command == "show":

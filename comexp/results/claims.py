@@ -297,11 +297,33 @@ def claims_markdown(rows: Iterable[Mapping], seed: int = 0, digits: int = 3) -> 
     return f"{mean_table}\n\n{claim_table}\n"
 
 
+def claims_records(rows: Iterable[Mapping], seed: int = 0) -> dict[str, list[dict]]:
+    """`claims_markdown` as JSON-ready records: {"means": [...], "claims": [...]}."""
+    from comexp.results.reports import json_number as num
+
+    means, claims = [], []
+    for group in studies(rows).values():
+        means += [
+            {"backend": m.backend, "floor": m.floor, "speed_cm_s": m.speed_cm_s, "n": m.n,
+             "mean_cm": num(m.mean_cm), "low_cm": num(m.low_cm), "high_cm": num(m.high_cm),
+             "paper_cm": num(m.paper_cm)}
+            for m in study_means(group, seed)
+        ]  # fmt: skip
+        claims += [
+            {"backend": c.backend, "floor": c.floor, "claim": c.claim, "statistic": c.statistic,
+             "n_pairs": c.n_pairs, "value_cm": num(c.value_cm), "low_cm": num(c.low_cm),
+             "high_cm": num(c.high_cm), "verdict": c.verdict}
+            for c in study_claims(group, seed)
+        ]  # fmt: skip
+    return {"means": means, "claims": claims}
+
+
 __all__ = [
     "CLAIM_COLUMNS",
     "ClaimResult",
     "MeanResult",
     "claims_markdown",
+    "claims_records",
     "studies",
     "study_claims",
     "study_means",
