@@ -285,6 +285,8 @@ def _run(args: argparse.Namespace, out: Any) -> None:
     if args.command == "show":
         _check_image_path(args.out)
     db = ResultsDB(args.db, readonly=True)
+    if db.schema_note is not None:
+        _note(db.schema_note)
     try:
         if args.command == "sweeps":
             _sweeps(db, args, out)
