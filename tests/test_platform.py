@@ -1,5 +1,5 @@
-"""Linux-only parts are stated (comexp/platform.py) and fail, elsewhere, in one clear line; the
-episode time limit falls back to its watchdog where there is no SIGALRM."""
+"""Linux-only parts are stated (comexp/experiment/platform.py) and fail, elsewhere, in one
+clear line; the episode time limit falls back to its watchdog where there is no SIGALRM."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from comexp.platform import LINUX_ONLY_BACKENDS, check_backend, has_sigalrm
+from comexp.experiment.platform import LINUX_ONLY_BACKENDS, check_backend, has_sigalrm
 
 
 @pytest.mark.parametrize("platform", ["darwin", "win32", "freebsd14"])

@@ -31,7 +31,7 @@ from typing import Any
 import ray
 
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec
-from comexp.platform import has_sigalrm
+from comexp.experiment.platform import has_sigalrm
 
 DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
 DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.simulator:make_simulator"
