@@ -1,8 +1,12 @@
 # The two commands of the README: `make run` and `make test`. Each creates .venv when missing.
+# `make run` installs what a job needs: comexp and its dependencies (no extras), plus Mesa EGL
+# when ARGS choose the MuJoCo backend. `make test` (and `make install`) install every extra
+# and the system packages the tests use (EGL, a PostgreSQL server).
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+RUN_STAMP := $(VENV)/.installed-run
 ARGS   ?=
 
 # The extras of the development venv and of requirements.lock: every extra pyproject.toml
@@ -20,13 +24,16 @@ NO_EDITABLE_NOTICE := PYTHONWARNINGS='ignore:Editable installation:UserWarning'
 
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: run test install lint system-deps lock clean
+.PHONY: run test install lint system-deps system-deps-egl system-deps-postgres lock clean
 
 # Headless MuJoCo rendering uses EGL on Mesa (llvmpipe, CPU only): Debian packages libegl1,
 # libegl-mesa0 and libgl1-mesa-dri. Installed here when missing and we are root; otherwise
 # the README says what to install. The PostgreSQL tests start a throw-away server from Debian's
 # `postgresql` package (initdb, pg_ctl), installed the same way; without it they are skipped.
-system-deps:
+# `make run` needs neither unless its ARGS choose backend=mujoco (EGL).
+system-deps: system-deps-egl system-deps-postgres
+
+system-deps-egl:
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so'; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	    echo "installing headless EGL (Mesa) for MuJoCo rendering"; \
@@ -35,6 +42,8 @@ system-deps:
 	    echo "warning: Mesa EGL not found; install libegl1 libegl-mesa0 libgl1-mesa-dri for the MuJoCo backend" >&2; \
 	  fi; \
 	fi
+
+system-deps-postgres:
 	@if ! ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	    echo "installing PostgreSQL (server for the PostgreSQL tests)"; \
@@ -44,6 +53,9 @@ system-deps:
 	  fi; \
 	fi
 
+# The system packages `make run` needs for its ARGS: EGL for backend=mujoco, nothing else.
+RUN_SYSTEM_DEPS := $(if $(findstring backend=mujoco,$(ARGS)),system-deps-egl)
+
 # requirements.lock pins every installed package (make lock); tests/test_install.py fails when
 # the venv and the lock differ.
 $(STAMP): pyproject.toml requirements.lock
@@ -51,11 +63,19 @@ $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m pip install -q --upgrade pip
 	@echo "$(PY) -m pip install -q -c requirements.lock -e '.[$(EXTRAS)]'"
 	@$(NO_EDITABLE_NOTICE) $(PY) -m pip install -q -c requirements.lock -e '.[$(EXTRAS)]'
-	@touch $(STAMP)
+	@touch $(STAMP) $(RUN_STAMP)
+
+# What a job needs (the lock's versions, no extras); a full install (above) covers it too.
+$(RUN_STAMP): pyproject.toml requirements.lock
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	@echo "$(PY) -m pip install -q -c requirements.lock -e ."
+	@$(NO_EDITABLE_NOTICE) $(PY) -m pip install -q -c requirements.lock -e .
+	@touch $(RUN_STAMP)
 
 install: system-deps $(STAMP)
 
-run: system-deps $(STAMP)
+run: $(RUN_SYSTEM_DEPS) $(RUN_STAMP)
 	$(VENV)/bin/comexp $(ARGS)
 
 test: system-deps $(STAMP)

@@ -320,15 +320,16 @@ def test_camera_fps_reaches_every_episode():
     assert episode_key(specs[0]) != episode_key(specs0[0])  # fps is part of the identity
 
 
-def test_an_older_schema_is_refused_in_one_line(tmp_path):
+def test_an_older_schema_is_upgraded_in_one_line(tmp_path):
+    """Schema 4 added pushes.n_frames; an older file is upgraded when a job opens it (every
+    earlier layout: tests/test_migrations.py)."""
     path = tmp_path / "old.db"
     ResultsDB(path).close()
     with sqlite3.connect(path) as con:
         con.execute("UPDATE comexp_meta SET value = '3' WHERE key = 'schema'")
-    with pytest.raises(ValueError) as info:
-        ResultsDB(path)
-    msg = str(info.value)
-    assert f"schema version 3, this comexp writes {SCHEMA_VERSION}" in msg and "\n" not in msg
+    with ResultsDB(path) as db:
+        msg = db.schema_note
+    assert msg is not None and "schema version 3 upgraded" in msg and "\n" not in msg
     assert SCHEMA_VERSION == 4
 
 

@@ -31,6 +31,7 @@ from typing import Any
 import ray
 
 from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.platform import has_sigalrm
 
 DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
 DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.simulator:make_simulator"
@@ -152,6 +153,13 @@ class EpisodeWorker:
         if self.episode_timeout_s is not None:
             grace = kill_grace_s if kill_grace_s is not None else max(10.0, self.episode_timeout_s)
             self._watchdog = _Watchdog(grace)
+            if not has_sigalrm():
+                print(
+                    f"comexp worker {os.getpid()}: no SIGALRM on {sys.platform}: an episode over "
+                    f"its time limit ends this worker after {grace:g} s more (watchdog)",
+                    file=sys.stderr,
+                    flush=True,
+                )
         self._sim: Any = self._factory(backend, **self.backend_options)
         self.episodes_run = 0
         self._physics: str | None = None
@@ -231,7 +239,8 @@ class EpisodeWorker:
             return
         assert self._watchdog is not None
         what = f"episode {spec.object} com {spec.com_index}"
-        use_alarm = threading.current_thread() is threading.main_thread()
+        # SIGALRM is POSIX (not on Windows): without it the watchdog alone bounds an episode
+        use_alarm = threading.current_thread() is threading.main_thread() and has_sigalrm()
         previous: Any = None
         if use_alarm:
 

@@ -34,6 +34,50 @@ from .actor import (
 
 log = logging.getLogger("comexp.pool")
 
+# `workers`: a positive count, `auto` (every CPU of the Ray cluster, or of this machine for a
+# local Ray), or None (the default: 2 on a local Ray, `auto` when the job joins a cluster).
+AUTO = "auto"
+DEFAULT_LOCAL_WORKERS = 2
+
+
+def check_workers(workers: Any) -> int | str | None:
+    """`workers` as configured, checked: a count >= 1, `AUTO` or None; ValueError (one line)
+    otherwise. A count given as text ("4", from a command line) becomes an int."""
+    if workers is None:
+        return None
+    if isinstance(workers, str):
+        text = workers.strip().lower()
+        if text == AUTO:
+            return AUTO
+        if not text.isdigit():
+            raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
+        workers = int(text)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
+    return workers
+
+
+def local_ray_cpus(workers: Any) -> int | None:
+    """`num_cpus` for a local Ray started for `workers`: the count (2 by default), or None
+    for `auto` (Ray then takes every CPU of this machine)."""
+    w = check_workers(workers)
+    if w is None:
+        return DEFAULT_LOCAL_WORKERS
+    return None if w == AUTO else int(w)
+
+
+def resolve_workers(workers: Any, cluster_cpus: int, *, on_cluster: bool) -> int:
+    """How many workers (one CPU each) a pool starts: `auto` (and the default on a cluster)
+    is every CPU the Ray cluster has; a count is kept (`EpisodePool.start` caps it at the
+    cluster's CPUs)."""
+    w = check_workers(workers)
+    if w is None:
+        w = AUTO if on_cluster else DEFAULT_LOCAL_WORKERS
+    if w == AUTO:
+        return max(1, int(cluster_cpus))
+    return int(w)
+
+
 # Errors that mean "the process running this batch is gone", not "the batch raised".
 _DEATH_ERRORS: tuple[type[BaseException], ...] = (
     rex.RayActorError,
@@ -94,7 +138,7 @@ class EpisodePool:
     def __init__(
         self,
         backend: str,
-        workers: int = 2,
+        workers: int | str | None = 2,
         *,
         runner: str | None = None,
         simulator_factory: str | None = None,
@@ -108,10 +152,13 @@ class EpisodePool:
         kill_grace_s: float | None = None,
         backend_options: dict[str, Any] | None = None,
     ) -> None:
-        if workers < 1 or batch_size < 1 or max_retries < 0 or inflight_per_worker < 1:
+        if batch_size < 1 or max_retries < 0 or inflight_per_worker < 1:
             raise ValueError("workers, batch_size, inflight_per_worker >= 1; max_retries >= 0")
         self.backend = backend
-        self.workers = workers
+        # as asked (a count, `auto` or None: see `resolve_workers`); `workers` is the count,
+        # known once Ray is up (`start`)
+        self.requested_workers = check_workers(workers)
+        self.workers = self.requested_workers if isinstance(self.requested_workers, int) else 0
         self.batch_size = batch_size
         self.max_retries = max_retries
         self.inflight_per_worker = inflight_per_worker
@@ -142,7 +189,13 @@ class EpisodePool:
         before any episode runs)."""
         if self._slots:
             return
+        from .session import joined_cluster
+
         cpus = int(ray.cluster_resources().get("CPU", 0))
+        self.workers = resolve_workers(self.requested_workers, cpus, on_cluster=joined_cluster())
+        if self.requested_workers != self.workers:
+            log.info("workers=%s: %d workers (the Ray cluster's CPUs)", self.requested_workers,
+                     self.workers)  # fmt: skip
         if 0 < cpus < self.workers:  # each actor holds one CPU: more would wait forever
             log.warning("the Ray cluster has %d CPUs: using %d workers", cpus, cpus)
             self.workers = cpus

@@ -26,7 +26,7 @@ from typing import Any
 
 import ray
 
-from .pool import PoolError, one_line
+from .pool import PoolError, local_ray_cpus, one_line
 
 log = logging.getLogger("comexp.pool")
 
@@ -74,6 +74,7 @@ def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOU
 
 _ray_started_here = False
 _join_node: JoinNode | None = None
+_joined_cluster = False  # ensure_ray was given an address: the job runs on a cluster
 JOIN_TIMEOUT_S = 60.0  # `ray start` joins a reachable cluster in ~5 s on 2 busy cores
 # `ray start` against a port that answers but is no Ray GCS: its first warning, after ~5 s
 _JOIN_FAILED = re.compile(r"^.*(Failed to connect to|Timed out while waiting for GCS).*$", re.M)
@@ -95,9 +96,15 @@ def ray_temp_dir() -> str:
     return os.path.join(tempfile.gettempdir(), f"comexp-ray-{uid}")
 
 
+def joined_cluster() -> bool:
+    """Whether this process's Ray session joined a cluster (`ray.address` set) rather than
+    starting a local Ray of its own."""
+    return _joined_cluster
+
+
 def ensure_ray(
     address: str | None = None,
-    num_cpus: int = 2,
+    num_cpus: int | str | None = 2,
     *,
     log_to_driver: bool = False,
     env: dict[str, str] | None = None,
@@ -110,10 +117,15 @@ def ensure_ray(
     Later calls reuse the session, so the jobs of a multirun share it; the session (and the
     join node) is shut down at exit when this process started it. Raises `PoolError` (one
     line naming the address) when the cluster cannot be joined.
+
+    `num_cpus` is the job's `workers` for a local Ray: a count, `auto` (every CPU of this
+    machine) or None (2); a cluster brings its own CPUs.
     """
-    global _ray_started_here, _join_node
+    global _ray_started_here, _join_node, _joined_cluster
     if ray.is_initialized():
         return
+    local_cpus = local_ray_cpus(num_cpus)
+    _joined_cluster = address is not None
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     kwargs: dict[str, Any] = dict(logging_level=logging.WARNING, log_to_driver=log_to_driver)
     if address is None:
@@ -126,7 +138,7 @@ def ensure_ray(
         # "local" forces a new local instance even when RAY_ADDRESS is set.
         kwargs.update(
             address="local",
-            num_cpus=num_cpus,
+            num_cpus=local_cpus,
             include_dashboard=False,
             _temp_dir=ray_temp_dir(),
         )

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import argparse
 import csv
+import datetime
 import io
+import json
 import math
 import os
 import sys
@@ -25,13 +27,17 @@ from comexp.results.reports import (
     CORE_COLUMNS,
     condition_tables,
     fmt_value,
+    json_number,
     markdown_table,
     paper_markdown,
+    paper_records,
     paper_tables,
     summary_csv,
     summary_markdown,
+    summary_records,
     table_markdown,
     tables_csv,
+    tables_records,
 )
 from comexp.results.schema import EPISODES
 from comexp.results.store import ResultsDB
@@ -125,22 +131,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("table", help="per-object error table for each matching condition")
     _add_condition_filters(t)
-    t.add_argument("--format", choices=("md", "csv"), default="md")
+    t.add_argument("--format", choices=("md", "csv", "json"), default="md")
 
     s = sub.add_parser("summary", help="one row per condition: n ok, n failed, mean error")
     _add_condition_filters(s)
-    s.add_argument("--format", choices=("md", "csv"), default="md")
+    s.add_argument("--format", choices=("md", "csv", "json"), default="md")
 
     pp = sub.add_parser(
         "paper", help="Tables II/III form: speeds side by side, frictions pooled, per floor"
     )
     _add_condition_filters(pp)
+    pp.add_argument("--format", choices=("md", "json"), default="md")
 
     c = sub.add_parser(
         "claims", help="the paper's claims per study: paired differences, bootstrap 95% CIs"
     )
     _add_condition_filters(c)
     c.add_argument("--seed", type=_nonneg_int, default=0, help="bootstrap seed (0)")
+    c.add_argument("--format", choices=("md", "json"), default="md")
 
     e = sub.add_parser("episodes", help="list or export episodes")
     _add_condition_filters(e)
@@ -149,10 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--failure", help="failure reason, e.g. tipped")
     e.add_argument("--limit", type=_pos_int)
     e.add_argument("--columns", help="comma-separated episode columns ('all' for every column)")
-    e.add_argument("--format", choices=("md", "csv"), default="md")
+    e.add_argument("--format", choices=("md", "csv", "json"), default="md")
 
     w = sub.add_parser("sweeps", help="list sweeps (or show one with --show ID)")
     w.add_argument("--show", type=_pos_int, metavar="ID", help="print one sweep's config")
+    w.add_argument("--format", choices=("md", "json"), default="md")
 
     pl = sub.add_parser("plot", help="draw the figures (PNG) into --out")
     _add_condition_filters(pl)
@@ -219,7 +228,30 @@ def _no_match_note(db: ResultsDB, flt: EpisodeFilter) -> str | None:
     return f"no episodes match {flt.describe()}: {detail}"
 
 
+def _json_default(v: Any) -> Any:
+    if isinstance(v, datetime.datetime | datetime.date):
+        return v.isoformat()
+    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
+
+
+def _json_out(value: Any) -> str:
+    """Strict JSON (NaN and infinities as null), one document, indented."""
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, float):
+            return json_number(v)
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list | tuple):
+            return [clean(x) for x in v]
+        return v
+
+    return json.dumps(clean(value), indent=2, default=_json_default, allow_nan=False) + "\n"
+
+
 def _rows_out(rows: Sequence[dict[str, Any]], columns: Sequence[str], fmt: str) -> str:
+    if fmt == "json":
+        return _json_out([{c: r[c] for c in columns} for r in rows])
     if fmt == "csv":
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -253,6 +285,8 @@ def _run(args: argparse.Namespace, out: Any) -> None:
     if args.command == "show":
         _check_image_path(args.out)
     db = ResultsDB(args.db, readonly=True)
+    if db.schema_note is not None:
+        _note(db.schema_note)
     try:
         if args.command == "sweeps":
             _sweeps(db, args, out)
@@ -266,19 +300,32 @@ def _run(args: argparse.Namespace, out: Any) -> None:
             _note(note)
         if args.command == "table":
             tables = condition_tables(db, flt)
-            if args.format == "csv":
+            if args.format == "json":
+                out.write(_json_out(tables_records(tables)))
+            elif args.format == "csv":
                 out.write(tables_csv(tables))
             else:
                 out.write("\n".join(table_markdown(t) for t in tables))
         elif args.command == "summary":
             tables = condition_tables(db, flt)
-            out.write(summary_csv(tables) if args.format == "csv" else summary_markdown(tables))
+            if args.format == "json":
+                out.write(_json_out(summary_records(tables)))
+            else:
+                out.write(summary_csv(tables) if args.format == "csv" else summary_markdown(tables))
         elif args.command == "paper":
-            out.write(paper_markdown(paper_tables(db, flt)))
+            ptables = paper_tables(db, flt)
+            if args.format == "json":
+                out.write(_json_out(paper_records(ptables)))
+            else:
+                out.write(paper_markdown(ptables))
         elif args.command == "claims":
-            from comexp.results.claims import CLAIM_COLUMNS, claims_markdown
+            from comexp.results.claims import CLAIM_COLUMNS, claims_markdown, claims_records
 
-            out.write(claims_markdown(db.episodes(flt, columns=CLAIM_COLUMNS), seed=args.seed))
+            rows = db.episodes(flt, columns=CLAIM_COLUMNS)
+            if args.format == "json":
+                out.write(_json_out(claims_records(rows, seed=args.seed)))
+            else:
+                out.write(claims_markdown(rows, seed=args.seed))
         elif args.command == "episodes":
             cols = _episode_columns(args.columns)
             rows = db.episodes(flt, columns=cols, limit=args.limit)
@@ -317,12 +364,15 @@ def _sweeps(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
     if args.show is None:
         if not sweeps:
             _note(f"no sweeps stored in {db.where}")
-        out.write(_rows_out(sweeps, SWEEP_COLUMNS, "md"))
+        out.write(_rows_out(sweeps, SWEEP_COLUMNS, args.format))
         return
     match = [s for s in sweeps if s["id"] == args.show]
     if not match:
         raise CliError(f"no sweep with id {args.show} (stored: {len(sweeps)} sweeps)")
     s = match[0]
+    if args.format == "json":  # every stored field: the config as its YAML text
+        out.write(_json_out(s))
+        return
     for key in ("id", "started_at", "job_name", "host", "git_rev", "command_line"):
         out.write(f"{key}: {fmt_value(s.get(key))}\n")
     out.write(f"episodes: {s['n_episodes']} ({s['n_ok']} ok)\n")
@@ -345,6 +395,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CliError, ValueError, OSError, SQLAlchemyError) as exc:
         text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
         print(f"comexp-db: error: {text[0] if text else type(exc).__name__}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug: still one line; COMEXP_DEBUG=1 shows the traceback
+        if os.environ.get("COMEXP_DEBUG") == "1":
+            raise
+        text = str(exc).strip().splitlines()
+        detail = f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+        print(
+            f"comexp-db: error: internal error ({detail}); COMEXP_DEBUG=1 shows where",
+            file=sys.stderr,
+        )
         return 1
     return 0
 

@@ -1,6 +1,8 @@
-"""Results for notebooks and for re-running: `load_results` (pandas) and `replay`.
+"""The notebook API: `run` (a job, as the command line runs it), `load_results` (pandas) and
+`replay`.
 
     import comexp
+    df = comexp.run(["backend=planar", "grid.objects=[l_shape]"])  # this job's episodes
     df = comexp.load_results("results/comexp.db")            # one row per episode
     result = comexp.replay("results/comexp.db", episode_id=12)  # run it again, in-process
 
@@ -10,10 +12,14 @@ grouping rule), so a notebook groups exactly as the tables and plots do.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import logging
 import os
+import sys
 import typing
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
 from comexp.results.schema import EPISODES, PUSHES, SWEEPS
@@ -37,7 +43,6 @@ def _open(db: DbLike) -> tuple[ResultsDB, bool]:
 def load_results(db: DbLike, table: str = "episodes") -> pd.DataFrame:
     """One stored table as a pandas DataFrame (read-only). `episodes` gets two more columns:
     `condition` (the grouping rule's label) and `condition_slug` (its short unique name)."""
-    import pandas as pd
     from sqlalchemy import select
 
     if table not in TABLES:
@@ -50,6 +55,13 @@ def load_results(db: DbLike, table: str = "episodes") -> pd.DataFrame:
     finally:
         if owned:
             handle.close()
+    return _frame(rows, table)
+
+
+def _frame(rows: list[dict[str, Any]], table: str = "episodes") -> pd.DataFrame:
+    import pandas as pd
+
+    t = TABLES[table]
     df = pd.DataFrame(rows, columns=[c.name for c in t.c])
     if table == "episodes":
         from comexp.results.reports import condition_of
@@ -58,6 +70,121 @@ def load_results(db: DbLike, table: str = "episodes") -> pd.DataFrame:
         df["condition"] = pd.Series([c.label() for c in conds], index=df.index, dtype=object)
         df["condition_slug"] = pd.Series([c.slug() for c in conds], index=df.index, dtype=object)
     return df
+
+
+# --------------------------------------------------------------------------- run
+def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | None = None):
+    """Run one job, as `comexp OVERRIDES...` does, and return its episodes as the DataFrame
+    `load_results` gives (this job's grid only, whoever stored them: a rerun returns the
+    stored rows without running anything again).
+
+    The same path as the command line: Hydra composes `overrides` (strings, as typed after
+    `comexp`) onto the packaged config, the validation callback checks the job before Hydra
+    creates its output folder, and `comexp.cli.run.run_job` runs the episodes on Ray (a local
+    Ray, started once per process and reused by later calls; `ray.address` joins a cluster),
+    writes the database and the job's reports into its output folder. `config_dir` is
+    `--config-dir` (your own objects: DIR/object/NAME.yaml).
+
+    Bad input raises ValueError with the command line's one-line message; nothing is
+    written then. One job per call: call it once per job of a sweep.
+    """
+    from hydra._internal.hydra import Hydra
+    from hydra._internal.utils import create_automatic_config_search_path
+    from hydra.core.config_search_path import SearchPathQuery
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from comexp.cli import run as cli
+
+    if isinstance(overrides, str):
+        raise TypeError("overrides: a list of strings, e.g. ['backend=planar', 'speed=4']")
+    args = [str(a) for a in overrides]
+    if any(a in ("-m", "--multirun") or a.startswith("-") for a in args):
+        raise ValueError(f"comexp.run takes overrides only (one job per call), got {args}")
+    try:
+        parsed = OverridesParser.create().parse_overrides(args)
+    except HydraException as e:
+        raise ValueError(cli._hydra_error_line(e)) from None
+    sweeps = [o.input_line for o in parsed if o.is_sweep_override()]
+    if sweeps:
+        raise ValueError(f"comexp.run runs one job; call it once per value of: {sweeps}")
+
+    search_path = create_automatic_config_search_path(None, cli.__name__, "pkg://comexp.conf")
+    if config_dir is not None:
+        path = os.path.abspath(config_dir)
+        if not os.path.isdir(path):
+            raise ValueError(f"config_dir {path!r} not found")
+        search_path.prepend("command-line", f"file://{path}", SearchPathQuery(provider="schema"))
+
+    found: dict[str, Any] = {}
+
+    def task(cfg: Any) -> dict[str, Any]:
+        summary = cli.run_job(cfg)
+        found["db"], found["keys"] = _job_keys(cfg)
+        return summary
+
+    global_hydra = GlobalHydra.instance()
+    previous = global_hydra.hydra if global_hydra.is_initialized() else None
+    cli._scrub_log_records(args)
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    try:
+        with _as_command_line(args), _logging_restored():
+            hydra = Hydra.create_main_hydra2(task_name="run", config_search_path=search_path)
+            hydra.run(config_name="config", task_function=task, overrides=args)
+    except cli.Abort as e:  # the validation callback's one line
+        raise ValueError(e.message) from None
+    except (HydraException, OmegaConfBaseException) as e:
+        raise ValueError(cli._hydra_error_line(e)) from None
+    finally:
+        global_hydra.clear()
+        if previous is not None:
+            global_hydra.initialize(previous)
+    with ResultsDB(found["db"], readonly=True) as db:
+        return _frame(db.episodes_by_keys(found["keys"]))
+
+
+def _job_keys(cfg: Any) -> tuple[str, list[str]]:
+    """The job's database and its grid's episode keys, as `run_job` computes them."""
+    from comexp.experiment.config import prepare_job
+    from comexp.experiment.grid import expand_grid
+    from comexp.results.identity import episode_key
+
+    job = prepare_job(cfg)
+    specs = expand_grid(job.cfg, job.objects, estimator=job.estimator)
+    return job.cfg.db, [episode_key(s) for s in specs]
+
+
+@contextlib.contextmanager
+def _as_command_line(args: list[str]) -> Iterator[None]:
+    """`sys.argv` as `comexp ARGS` while the job runs: the sweep row records the command line
+    that would run the same job (`run_job` reads it from `sys.argv`)."""
+    saved = sys.argv
+    sys.argv = ["comexp", *args]
+    try:
+        yield
+    finally:
+        sys.argv = saved
+
+
+@contextlib.contextmanager
+def _logging_restored() -> Iterator[None]:
+    """Hydra configures logging for the job (console, and the job's log file) as the command
+    line does; afterwards the caller's logging is as it was."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        yield
+    finally:
+        for h in root.handlers:
+            if h not in handlers:
+                root.removeHandler(h)
+                h.close()
+        for h in handlers:
+            if h not in root.handlers:
+                root.addHandler(h)
+        root.setLevel(level)
 
 
 def _from_json(tp: Any, value: Any) -> Any:

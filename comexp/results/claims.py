@@ -171,7 +171,8 @@ def _merge(a: Clusters, b: Clusters, names: tuple[str, str]) -> Clusters:
 
 def study_claims(rows: Sequence[Mapping], seed: int = 0) -> list[ClaimResult]:
     """The paper's claims on one study (rows of one `group_episodes` group pooled over
-    `VARIED`)."""
+    `VARIED`). A claim the study cannot test (one speed, one friction level, one Izz scale)
+    is a "no data" row whose statistic says what is missing."""
     backend, floor = rows[0]["backend"], rows[0]["floor"]
     out: list[ClaimResult] = []
 
@@ -179,44 +180,60 @@ def study_claims(rows: Sequence[Mapping], seed: int = 0) -> list[ClaimResult]:
         v, lo, hi, n = _bootstrap(clusters, fn, seed)
         out.append(ClaimResult(claim, backend, floor, statistic, v, lo, hi, n, side))
 
-    speeds = (QUASI_STATIC_CM_S, DYNAMIC_CM_S)
-    add(
-        "dynamic beats quasi-static",
-        "mean error 40 - 4 cm/s",
-        -1,
-        _paired(rows, "speed_cm_s", speeds),
-        lambda m: m["d"],
-    )
+    def missing(claim: str, side: int, why: str) -> None:
+        add(claim, why, side, {}, lambda m: float("nan"))
+
+    stored = sorted({float(r["speed_cm_s"]) for r in rows}, reverse=True)
+    absent = [s for s in (DYNAMIC_CM_S, QUASI_STATIC_CM_S) if s not in stored]
+    has = f"the study has {', '.join(f'{s:g}' for s in stored)} cm/s"
+    needs_speeds = f"needs {DYNAMIC_CM_S:g} and {QUASI_STATIC_CM_S:g} cm/s, {has}"
+
+    claim = "dynamic beats quasi-static"
+    if absent:
+        missing(claim, -1, needs_speeds)
+    else:
+        speeds = (QUASI_STATIC_CM_S, DYNAMIC_CM_S)
+        add(
+            claim,
+            "mean error 40 - 4 cm/s",
+            -1,
+            _paired(rows, "speed_cm_s", speeds),
+            lambda m: m.get("d", float("nan")),
+        )
     for column, label in (("floor_mu", "floor"), ("mu_pusher", "pusher")):
+        claim = f"{label} friction matters less when dynamic"
         levels = _levels(rows, column)
-        if len(levels) > 2:  # e.g. the paper's aniso run (mu_p 0.5) stored beside the grid's
-            add(
-                f"{label} friction matters less when dynamic",
-                f"needs 2 friction levels, the study has {len(levels)}: "
-                "store such runs in separate databases",
-                +1,
-                {},
-                lambda m: float("nan"),
-            )
         if len(levels) != 2:
+            why = f"needs 2 friction levels, the study has {len(levels)}"
+            if len(levels) > 2:  # e.g. the paper's aniso run (mu_p 0.5) stored beside the grid's
+                why += ": store such runs in separate databases"
+            missing(claim, +1, why)
+            continue
+        if absent:
+            missing(claim, +1, needs_speeds)
             continue
         fast = _paired(rows, column, levels, {"speed_cm_s": DYNAMIC_CM_S})
         slow = _paired(rows, column, levels, {"speed_cm_s": QUASI_STATIC_CM_S})
         add(
-            f"{label} friction matters less when dynamic",
+            claim,
             f"abs. effect at 4 - at 40 cm/s ({_level_text(levels)})",
             +1,
             _merge(slow, fast, ("slow", "fast")),
-            lambda m: abs(m["slow"]) - abs(m["fast"]),
+            lambda m: abs(m.get("slow", float("nan"))) - abs(m.get("fast", float("nan"))),
         )
+    claim = "Izz x10 hurts quasi-static"
     izz = _levels(rows, "izz_scale")
-    if len(izz) == 2:
+    if len(izz) != 2:
+        missing(claim, +1, f"needs 2 Izz scales, the study has {len(izz)}")
+    elif QUASI_STATIC_CM_S not in stored:
+        missing(claim, +1, f"needs {QUASI_STATIC_CM_S:g} cm/s, {has}")
+    else:
         add(
-            "Izz x10 hurts quasi-static",
+            claim,
             f"mean error Izz x{izz[1]:g} - x{izz[0]:g} at 4 cm/s",
             +1,
             _paired(rows, "izz_scale", izz, {"speed_cm_s": QUASI_STATIC_CM_S}),
-            lambda m: m["d"],
+            lambda m: m.get("d", float("nan")),
         )
     return out
 
@@ -259,7 +276,7 @@ def claims_markdown(rows: Iterable[Mapping], seed: int = 0, digits: int = 3) -> 
         return "" if not math.isfinite(x) else f"{x:.{digits}f}"
 
     def ci(lo: float, hi: float) -> str:
-        return f"[{cell(lo)}, {cell(hi)}]"
+        return "" if not (math.isfinite(lo) or math.isfinite(hi)) else f"[{cell(lo)}, {cell(hi)}]"
 
     mean_table = markdown_table(
         ["backend", "floor", "speed cm/s", "n", "mean error cm", "95% CI", "paper"],
@@ -280,11 +297,33 @@ def claims_markdown(rows: Iterable[Mapping], seed: int = 0, digits: int = 3) -> 
     return f"{mean_table}\n\n{claim_table}\n"
 
 
+def claims_records(rows: Iterable[Mapping], seed: int = 0) -> dict[str, list[dict]]:
+    """`claims_markdown` as JSON-ready records: {"means": [...], "claims": [...]}."""
+    from comexp.results.reports import json_number as num
+
+    means, claims = [], []
+    for group in studies(rows).values():
+        means += [
+            {"backend": m.backend, "floor": m.floor, "speed_cm_s": m.speed_cm_s, "n": m.n,
+             "mean_cm": num(m.mean_cm), "low_cm": num(m.low_cm), "high_cm": num(m.high_cm),
+             "paper_cm": num(m.paper_cm)}
+            for m in study_means(group, seed)
+        ]  # fmt: skip
+        claims += [
+            {"backend": c.backend, "floor": c.floor, "claim": c.claim, "statistic": c.statistic,
+             "n_pairs": c.n_pairs, "value_cm": num(c.value_cm), "low_cm": num(c.low_cm),
+             "high_cm": num(c.high_cm), "verdict": c.verdict}
+            for c in study_claims(group, seed)
+        ]  # fmt: skip
+    return {"means": means, "claims": claims}
+
+
 __all__ = [
     "CLAIM_COLUMNS",
     "ClaimResult",
     "MeanResult",
     "claims_markdown",
+    "claims_records",
     "studies",
     "study_claims",
     "study_means",

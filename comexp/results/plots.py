@@ -17,7 +17,9 @@ rule) and pools only the columns its caption names:
 Errors are skewed (bounded below by 0), so every figure draws box plots: median, IQR box,
 whiskers at 1.5 IQR, outliers, and the mean as a white dot; never a mean +- std bar that would
 reach below zero. n (ok episodes) is written above each box. Only ok episodes are drawn; the
-number of failed ones is in each title. matplotlib's object API (no pyplot) keeps this headless
+number of failed ones is in each caption. Titles are short (what is drawn, backend and
+floor); the caption under the axes gives the condition, what was pooled and what was excluded,
+and the file name the condition's slug. matplotlib's object API (no pyplot) keeps this headless
 and thread-safe (Agg).
 """
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import textwrap
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -79,6 +82,10 @@ def _panels(
     return dict(out)
 
 
+_CHAR_IN = 8 * 0.6 / 72  # width of one tick-label character at 8 pt, inches (about)
+_BOX_EXPLAINED = "box = IQR, line = median, dot = mean, number = ok episodes"
+
+
 def _box_figure(
     *,
     cells: Mapping[tuple[Any, Any], list[float]],  # (x key, series key) -> errors
@@ -87,12 +94,24 @@ def _box_figure(
     series: Sequence[Any],
     series_label: Callable[[Any], str],
     title: str,
+    caption: str,
     path: Path,
     marks: Mapping[tuple[Any, Any], float] | None = None,
     xtitle: str = "",
 ) -> Path:
+    """Box plots, one group per x key and one box per series. The title is short (what is
+    drawn, and the core of the condition); the condition in full, what was pooled and what
+    was excluded go into the caption under the axes. Tick labels never overlap: the figure
+    widens with the number of boxes and the labels' length (up to 16 in), beyond that the
+    labels are turned 35 deg."""
     width = 0.8 / max(1, len(series))
-    fig = Figure(figsize=(max(6.5, 0.6 * len(xkeys) * len(series) + 2), 4.8), layout="constrained")
+    labels = [xlabel(x) for x in xkeys]
+    longest = max((len(line) for text in labels for line in text.split("\n")), default=1)
+    fig_w = max(6.5, (0.2 + 0.22 * max(1, len(series))) * len(xkeys) + 1.5)
+    fits_w = longest * _CHAR_IN / 0.9 * len(xkeys) + 1.5  # width at which labels fit flat
+    turn = fits_w > max(fig_w, 16.0)  # else widen the figure (up to 16 in) rather than turn
+    fig_w = min(24.0, fig_w if turn else max(fig_w, fits_w))
+    fig = Figure(figsize=(fig_w, 5.2 + (0.06 * longest if turn else 0.0)), layout="constrained")
     ax = fig.add_subplot()
     handles = []
     top = max((max(v) for v in cells.values() if v), default=1.0)
@@ -131,17 +150,65 @@ def _box_figure(
             star = ax.scatter([p], [value], marker="*", s=90, color="red", zorder=5)
     if star is not None:
         handles.append((star, "paper, all objects (mean)"))
-    ax.set_xticks(range(len(xkeys)), [xlabel(x) for x in xkeys], fontsize=8)
+    if turn:
+        ax.set_xticks(
+            range(len(xkeys)),
+            [t.replace("\n", ", ") for t in labels],
+            fontsize=8,
+            rotation=35,
+            ha="right",
+            rotation_mode="anchor",
+        )
+    else:
+        ax.set_xticks(range(len(xkeys)), labels, fontsize=8)
     ax.set_xlim(-0.6, len(xkeys) - 0.4)
     ax.set_ylim(bottom=0, top=top * 1.12)
-    ax.set_ylabel("CoM error (cm): box = IQR, line = median, dot = mean")
+    ax.set_ylabel("CoM error (cm)")
     if xtitle:
-        ax.set_xlabel(xtitle + " (numbers: ok episodes per box)")
-    ax.set_title(title, fontsize=9)
+        ax.set_xlabel(xtitle)
+    ax.set_title(title, fontsize=11)
+    ax.grid(axis="y", alpha=0.3)
     if handles:
         ax.legend([h for h, _ in handles], [t for _, t in handles], fontsize=8)
+    chars = max(40, int(fig_w * 72 / (7 * 0.55)))
+    fig.supxlabel(
+        "\n".join(textwrap.wrap(f"{caption}. {_BOX_EXPLAINED}.", chars)),
+        fontsize=7,
+        color="0.3",
+    )
     fig.savefig(path, dpi=110)
     return path
+
+
+def _core_label(cond: Condition) -> str:
+    """The short part of a condition for a title: backend, floor, pusher friction, speed, Izz
+    (those not pooled)."""
+    return ", ".join(cond.label().split(", ")[: _n_core_parts(cond)]) or "all conditions"
+
+
+def _n_core_parts(cond: Condition) -> int:
+    return len(cond.label().split(", ")) - len(cond.extras())
+
+
+def _detail_label(cond: Condition) -> str:
+    """The rest of a condition for a caption: rotation source, estimator knobs, protocol, and
+    the physics by its version name (its full identity, with the hash, is in the database)."""
+    parts = []
+    for part in cond.extras():
+        if part.startswith("physics="):
+            bits = part.removeprefix("physics=").split("/")
+            part = f"physics {bits[1] if len(bits) > 1 else bits[0]}"
+        parts.append(part)
+    return ", ".join(parts)
+
+
+def _caption(panel: Condition, groups: Mapping[Condition, Rows], pool: Sequence[str]) -> str:
+    parts = [p for p in (_core_label(panel), _detail_label(panel)) if p]
+    pooled = _pooled_caption(groups, pool)
+    text = "; ".join(parts)
+    if pooled:
+        text += f"; pooled: {pooled}"
+    return f"{text}; {_failed(groups)} failed episodes excluded"
 
 
 def _failed(groups: Mapping[Condition, Rows]) -> int:
@@ -178,10 +245,6 @@ def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
                 marks[(ALL_OBJECTS, cond.speed_cm_s)] = mark
         objects = sorted({r["object"] for g in groups.values() for r in g}, key=natural_key)
         speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
-        title = (
-            f"{panel.label()}: error per object ({_failed(groups)} failed excluded)\n"
-            f"pooled: {_pooled_caption(groups, PAPER_POOL)}"
-        )
         paths.append(
             _box_figure(
                 cells=cells,
@@ -189,7 +252,8 @@ def plot_error_per_object(rows: Rows, out_dir: Path) -> list[Path]:
                 xlabel=str,
                 series=speeds,
                 series_label=speed_name,
-                title=title,
+                title=f"CoM error per object: {_core_label(panel)}",
+                caption=_caption(panel, groups, PAPER_POOL),
                 path=out_dir / f"error_per_object_{panel.slug()}.png",
                 marks=marks,
                 xtitle="object",
@@ -236,6 +300,7 @@ def _influence(
     what: str,
     name: str,
     xlabel: Callable[[tuple[Any, ...]], str],
+    xtitle: str,
 ) -> list[Path]:
     """One figure per panel: the error per value of `factor` (with the floor), one box per
     speed, the `pool` columns pooled (and said so in the title)."""
@@ -250,10 +315,6 @@ def _influence(
     ):
         xkeys = sorted({x for x, _ in cells}, key=_sort_any)
         speeds = sorted({c.speed_cm_s for c in groups}, reverse=True)
-        title = (
-            f"{panel.label()}: influence of {what} ({_failed(groups)} failed excluded)\n"
-            f"pooled: {_pooled_caption(groups, pool)}"
-        )
         paths.append(
             _box_figure(
                 cells=cells,
@@ -261,9 +322,10 @@ def _influence(
                 xlabel=xlabel,
                 series=speeds,
                 series_label=speed_name,
-                title=title,
+                title=f"Influence of {what}: {_core_label(panel)}",
+                caption=_caption(panel, groups, pool),
                 path=out_dir / f"{name}_{panel.slug()}.png",
-                xtitle=f"floor and {what}",
+                xtitle=xtitle,
             )
         )
     return paths
@@ -275,9 +337,10 @@ def plot_friction_influence(rows: Rows, out_dir: Path) -> list[Path]:
         out_dir,
         pool=("izz_scale",),
         factor=FRICTION_COLUMNS,
-        what="floor and pusher friction",
+        what="friction",
         name="friction_influence",
         xlabel=_friction_text,
+        xtitle="floor; floor friction mu_f; pusher friction mu_p",
     )
 
 
@@ -290,6 +353,7 @@ def plot_izz_influence(rows: Rows, out_dir: Path) -> list[Path]:
         what="Izz",
         name="izz_influence",
         xlabel=lambda k: f"{k[0]}\nIzz x{fmt_num(k[1])}",
+        xtitle="floor; Izz scale",
     )
 
 
@@ -315,10 +379,6 @@ def plot_backends(rows: Rows, out_dir: Path) -> list[Path]:
         for cond, group in groups.items():
             if (mark := _paper_mark(group)) is not None:
                 marks[((cond.floor, cond.speed_cm_s), cond.backend)] = mark
-        title = (
-            f"{panel.label() or 'all'}: backends on the same condition "
-            f"({_failed(groups)} failed excluded)\npooled: {_pooled_caption(groups, PAPER_POOL)}"
-        )
         paths.append(
             _box_figure(
                 cells=cells,
@@ -326,7 +386,8 @@ def plot_backends(rows: Rows, out_dir: Path) -> list[Path]:
                 xlabel=lambda k: f"{k[0]}\n{speed_name(k[1])}",
                 series=backends,
                 series_label=str,
-                title=title,
+                title="Backends on the same condition",
+                caption=_caption(panel, groups, PAPER_POOL),
                 path=out_dir / f"backends_{panel.slug() or 'all'}.png",
                 marks=marks,
                 xtitle="floor and speed",
@@ -446,7 +507,8 @@ def plot_episode(
     cond = Condition.of(row)
     fig.suptitle(
         f"episode {row['id']}: {row['object']} CoM {row['com_index']} ({status}{err})\n"
-        f"{cond.label()}; object frame, cm; region reconstructed from the stored pushes",
+        f"{'; '.join(t for t in (_core_label(cond), _detail_label(cond)) if t)}; object frame, "
+        "cm; region reconstructed from the stored pushes",
         fontsize=9,
     )
     out = Path(path)

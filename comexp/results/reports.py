@@ -18,6 +18,7 @@ std is the sample standard deviation (ddof = 1, the unbiased variance estimate):
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -552,6 +553,84 @@ def summary_csv(tables: Sequence[ConditionTable], *, digits: int = 6) -> str:
             [*(_csv_value(v) for v in t.condition.key), stats[0], t.n_failed, *stats[1:], reasons]
         )
     return buf.getvalue()
+
+
+# JSON (`comexp-db ... --format json`): the same rows as the CSV, as records with typed values
+# (numbers as numbers, null for a missing value or NaN); a pooled column is left out of the
+# condition and listed under "pooled".
+def json_number(x: Any) -> Any:
+    """A float for JSON: None for NaN and infinities (strict JSON has neither)."""
+    if isinstance(x, float | np.floating):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def condition_record(cond: Condition) -> dict[str, Any]:
+    """A condition's columns (pooled ones left out) and its label; the estimator settings as
+    an object, not as the stored JSON text."""
+    out: dict[str, Any] = {"condition": cond.label()}
+    for c, v in cond.values().items():
+        if v is POOLED:
+            continue
+        if c == "estimator" and isinstance(v, str):
+            with contextlib.suppress(ValueError):
+                v = json.loads(v)
+        out[c] = json_number(v)
+    return out
+
+
+def _stats_record(s: ErrorStats) -> dict[str, Any]:
+    return {c: json_number(getattr(s, c)) for c in STAT_COLUMNS}
+
+
+def _pooled_record(t: ConditionTable) -> dict[str, Any]:
+    return {"pooled": {c: [json_number(v) for v in vs] for c, vs in t.pooled.items()}}
+
+
+def tables_records(tables: Sequence[ConditionTable]) -> list[dict[str, Any]]:
+    """`tables_csv` as records: per condition and object (and `all`), the error statistics."""
+    out = []
+    for t in tables:
+        cond = condition_record(t.condition) | (_pooled_record(t) if t.pooled else {})
+        for o, stats, nf in (*t.rows, (ALL_OBJECTS, t.overall, t.n_failed)):
+            out.append(cond | {"object": o} | _stats_record(stats) | {"n_failed": nf})
+    return out
+
+
+def summary_records(tables: Sequence[ConditionTable]) -> list[dict[str, Any]]:
+    """`summary_csv` as records: one per condition, the failures by reason."""
+    out = []
+    for t in tables:
+        stats = _stats_record(t.overall)
+        n_ok = stats.pop("n")
+        out.append(
+            condition_record(t.condition)
+            | {"n_ok": n_ok, "n_failed": t.n_failed}
+            | stats
+            | {"failures": dict(sorted(t.failures.items()))}
+        )
+    return out
+
+
+def paper_records(tables: dict[Condition, dict[float, ConditionTable]]) -> list[dict[str, Any]]:
+    """`paper_markdown` as records: per condition (frictions and Izz pooled), speed and object
+    (and `all`, with the paper's all-objects mean where the condition is the paper's)."""
+    out = []
+    for by_speed in tables.values():
+        for speed in sorted(by_speed, reverse=True):
+            t = by_speed[speed]
+            cond = condition_record(t.condition) | _pooled_record(t)
+            for o, stats, nf in t.rows:
+                out.append(cond | {"object": o} | _stats_record(stats) | {"n_failed": nf})
+            out.append(
+                cond
+                | {"object": ALL_OBJECTS}
+                | _stats_record(t.overall)
+                | {"n_failed": t.n_failed, "paper_mean": json_number(paper_mean_cm(t))}
+            )
+    return out
 
 
 def summary_text(tables: Sequence[ConditionTable]) -> str:

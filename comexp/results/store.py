@@ -14,6 +14,7 @@ Why the SQLite details matter:
 
 from __future__ import annotations
 
+import logging
 import os
 import random
 import sqlite3
@@ -37,8 +38,10 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
+from sqlalchemy.pool import StaticPool
 
 from comexp.experiment.episode import EpisodeResult
+from comexp.results import migrations
 from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import episode_key
 from comexp.results.schema import (
@@ -53,6 +56,7 @@ from comexp.results.schema import (
     utcnow,
 )
 
+log = logging.getLogger("comexp.results.store")
 BUSY_TIMEOUT_MS = 60_000  # a writer waits this long for the other writer's short transaction
 _IN_CHUNK = 500  # keys per IN (...) clause, well under SQLite's bound-parameter limit
 _SCHEMA_LOCK_ID = 0x636F6D6578  # "comex": PostgreSQL advisory lock taken while creating tables
@@ -165,6 +169,9 @@ class ResultsDB:
     def __init__(self, url_or_path: str | os.PathLike[str], *, readonly: bool = False) -> None:
         target = os.fspath(url_or_path)
         self.readonly = readonly
+        # one line when the database had an earlier schema: upgraded in place (writable), or
+        # read through an upgraded copy in memory (read-only); None otherwise
+        self.schema_note: str | None = None
         self.url: str | URL
         self.path = sqlite_file(target)
         if _is_url(target):
@@ -199,15 +206,63 @@ class ResultsDB:
                 version = conn.execute(select(META.c.value).where(META.c.key == "schema")).scalar()
                 if version is None:
                     conn.execute(insert(META).values(key="schema", value=str(SCHEMA_VERSION)))
-                elif int(version) != SCHEMA_VERSION:
-                    raise ValueError(
-                        f"schema version {version}, this comexp writes {SCHEMA_VERSION}"
-                    )
+                else:
+                    note = migrations.upgrade(conn)  # in this transaction: all or nothing
+                    if note is not None:
+                        self.schema_note = f"{self.where}: {note}, in place"
+                        log.warning("%s", self.schema_note)
             return engine
         except (OSError, SQLAlchemyError, ValueError) as exc:
             raise ValueError(f"cannot write database at {self.where}: {_reason(exc)}") from exc
 
     def _open_readonly(self) -> Engine:
+        engine = self._open_readonly_engine()
+        try:
+            with engine.connect() as conn:
+                stale = migrations.needs_upgrade(conn)
+                version = migrations.stored_version(conn)
+        except SQLAlchemyError as exc:
+            engine.dispose()
+            raise ValueError(f"cannot read database {self.where}: {_reason(exc)}") from exc
+        if not stale:
+            return engine
+        if version is not None and version > SCHEMA_VERSION:
+            engine.dispose()
+            raise ValueError(
+                f"{self.where}: schema version {version}, this comexp reads {SCHEMA_VERSION}: "
+                "use a newer comexp"
+            )
+        if not self.is_sqlite:
+            engine.dispose()
+            raise ValueError(
+                f"{self.where}: schema version {version}, this comexp reads {SCHEMA_VERSION}: "
+                "run a job on it once (that upgrades it in place), then read it"
+            )
+        return self._upgraded_copy(engine, version)
+
+    def _upgraded_copy(self, engine: Engine, version: int | None) -> Engine:
+        """An old SQLite database, copied into memory (a consistent snapshot, even while a
+        writer is busy) and upgraded there; the file stays as it is."""
+        raw = engine.raw_connection()
+        try:
+            mem = sqlite3.connect(":memory:", check_same_thread=False)
+            raw.driver_connection.backup(mem)
+        finally:
+            raw.close()
+            engine.dispose()
+        copy = create_engine("sqlite://", creator=lambda: mem, poolclass=StaticPool)
+        _install_sqlite_hooks(copy, begin="BEGIN", wal=False)
+        with copy.begin() as conn:
+            note = migrations.upgrade(conn)
+        mem.execute("PRAGMA query_only = 1")
+        self.schema_note = (
+            f"{self.where} has schema version {version} (this comexp: {SCHEMA_VERSION}): read "
+            f"through an upgraded copy in memory ({note}); a job writing to it upgrades the file"
+        )
+        log.info("%s", self.schema_note)
+        return copy
+
+    def _open_readonly_engine(self) -> Engine:
         if self.path is not None:
             if not self.path.is_file():
                 raise ValueError(f"database not found: {self.path}")

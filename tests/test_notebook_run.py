@@ -1,0 +1,143 @@
+"""`comexp.run(overrides)`: the README's notebook example runs a tiny planar job through the
+command line's own path and returns exactly the rows `comexp` itself stores for the same
+overrides (this job's only), and bad input is one ValueError that writes nothing."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import sqlite3
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from test_cli import comexp
+from test_db import make_result
+
+import comexp as package
+from comexp.results.api import load_results, run
+from comexp.results.store import ResultsDB
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+# what differs between two runs of one episode: where and when it ran, and how long it took
+RUN_COLUMNS = {"id", "sweep_id", "wall_s", "worker", "created_at"}
+
+
+def _readme_block() -> str:
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    (block,) = [b for b in blocks if "comexp.run(" in b]
+    return block
+
+
+def _overrides(block: str) -> list[str]:
+    (args,) = re.findall(r"comexp\.run\((\[.*?\])\)", block, flags=re.S)
+    return eval(args)  # noqa: S307 - a list literal of our own README
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
+    """The README example run in a fresh directory (whose database already holds another
+    job's episode), and the command line with the same overrides in another one."""
+    from comexp.workers.session import shutdown_ray
+
+    block = _readme_block()
+    overrides = _overrides(block)
+    nb, cli = tmp_path_factory.mktemp("notebook"), tmp_path_factory.mktemp("cli")
+    db_arg = next(a for a in overrides if a.startswith("db="))
+    nb_db = nb / db_arg.removeprefix("db=")
+    nb_db.parent.mkdir(parents=True)
+    with ResultsDB(nb_db) as db:
+        db.add_results(db.start_sweep(command_line="another job"), [make_result()])
+    cwd = os.getcwd()
+    os.chdir(nb)
+    scope: dict = {}
+    try:
+        package.run = run  # until comexp/__init__.py exports it (no-op afterwards)
+        exec(compile(block, "README.md", "exec"), scope)  # noqa: S102 - our own document
+    finally:
+        os.chdir(cwd)
+        shutdown_ray()  # this module's local Ray: later in-process tests start their own
+    ray_tmp = Path(tempfile.mkdtemp(prefix="cxnb-"))  # short: Ray's socket paths must fit
+    try:
+        r = comexp(cli, *overrides, TMPDIR=str(ray_tmp))
+    finally:
+        shutil.rmtree(ray_tmp, ignore_errors=True)
+    assert r.returncode == 0, r.stderr
+    yield {
+        "df": scope["df"],
+        "overrides": overrides,
+        "nb_db": nb_db,
+        "nb_dir": nb,
+        "cli_db": cli / db_arg.removeprefix("db="),
+    }
+
+
+def test_run_returns_the_rows_the_command_line_stores(runs: dict) -> None:
+    df: pd.DataFrame = runs["df"]
+    cli = load_results(runs["cli_db"])
+    assert len(df) == len(cli) == 2  # floor mu 0.1 and 1: this job's grid, not the other row
+    assert list(df.columns) == list(cli.columns)
+    same = [c for c in df.columns if c not in RUN_COLUMNS]
+    pd.testing.assert_frame_equal(
+        df[same].reset_index(drop=True), cli[same].reset_index(drop=True), check_exact=True
+    )
+    assert (df.status == "ok").all() and df.backend.eq("planar").all()
+    # the same database writing: pushes too, and a sweep row with the command line
+    stored = load_results(runs["nb_db"])
+    assert len(stored) == 3 and list(df.id) == list(stored.id[1:])
+    key = ["episode_key", "k"]
+
+    def pushes(path: Path) -> pd.DataFrame:
+        with sqlite3.connect(path) as c:
+            q = "SELECT e.episode_key, p.* FROM pushes p JOIN episodes e ON e.id = p.episode_id"
+            out = pd.read_sql_query(q, c)
+        return out.drop(columns=["id", "episode_id"]).sort_values(key).reset_index(drop=True)
+
+    nb_pushes = pushes(runs["nb_db"])
+    nb_pushes = nb_pushes[nb_pushes.episode_key.isin(df.episode_key)].reset_index(drop=True)
+    pd.testing.assert_frame_equal(nb_pushes, pushes(runs["cli_db"]), check_exact=True)
+    sweeps = load_results(runs["nb_db"], "sweeps")
+    assert sweeps.command_line.iloc[-1] == "comexp " + " ".join(
+        f"'{a}'" if "[" in a else a for a in runs["overrides"]
+    )
+    assert list((runs["nb_dir"] / "results" / "runs").glob("*/summary.csv"))
+
+
+def test_a_rerun_returns_the_stored_rows_without_running(runs: dict, monkeypatch) -> None:
+    monkeypatch.chdir(runs["nb_dir"])
+
+    def no_pool(*args, **kwargs):
+        raise AssertionError("nothing should run")
+
+    monkeypatch.setattr("comexp.workers.pool.EpisodePool", no_pool)
+    again = run(runs["overrides"])
+    assert list(again.id) == list(runs["df"].id)
+    assert list(again.error_cm) == list(runs["df"].error_cm)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["backend=planar", "workers=0"], "workers must be >= 1, got 0"),
+        (["backend=nope"], "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)"),
+        (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'"),
+        (["speed=40,4"], "comexp.run runs one job; call it once per value of: ['speed=40,4']"),
+        (["-m", "speed=4"], "comexp.run takes overrides only"),
+    ],
+)
+def test_bad_input_is_one_value_error_and_writes_nothing(
+    tmp_path: Path, monkeypatch, overrides: list[str], message: str
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError) as err:
+        run([*overrides, "db=bad.db"])
+    assert str(err.value).startswith(message) and "\n" not in str(err.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_string_is_not_a_list_of_overrides() -> None:
+    with pytest.raises(TypeError, match="a list of strings"):
+        run("backend=planar")
