@@ -19,6 +19,7 @@ from __future__ import annotations
 import glob
 import math
 import os
+import sys
 
 import mujoco
 import numpy as np
@@ -29,7 +30,11 @@ from comexp.backends.floor_friction import impulse_kernel
 
 
 def _libmujoco() -> str:
-    """The libmujoco the Python bindings load (the wheel ships it beside them)."""
+    """The libmujoco the Python bindings load (the wheel ships it beside them; Linux only:
+    comexp.experiment.platform)."""
+    if not sys.platform.startswith("linux"):
+        msg = f"the compiled MuJoCo loop loads libmujoco.so: Linux only, not {sys.platform}"
+        raise ImportError(msg)
     pkg = os.path.dirname(mujoco.__file__)
     found = sorted(glob.glob(os.path.join(pkg, f"libmujoco.so.{mujoco.__version__}")))
     found = found or sorted(glob.glob(os.path.join(pkg, "libmujoco.so*")))

@@ -9,8 +9,9 @@ The package is laid out by concern, in the order data flows through it:
 - `comexp.results`: store (database), reports, plots, the notebook API;
 - `comexp.cli`: the `comexp` and `comexp-db` commands.
 
-`comexp.load_results(db, table="episodes")` (a pandas DataFrame) and
-`comexp.replay(db, episode_id)` are imported on first use, so `import comexp` stays light.
+`comexp.run(overrides)` (runs a job, returns its episodes), `comexp.load_results(db,
+table="episodes")` (a pandas DataFrame) and `comexp.replay(db, episode_id)` are imported on
+first use, so `import comexp` stays light.
 The short module names the README and docs use (`comexp.estimator`, `comexp.perception`,
 `comexp.scene`, `comexp.objects`, `comexp.simulator`, `comexp.reports`) are thin modules that
 re-export the module in its room (`comexp/estimator.py` -> `comexp.method.estimator`, ...);
@@ -23,7 +24,7 @@ import importlib
 from typing import Any
 
 __version__ = "0.1.0"
-__all__ = ["load_results", "replay"]
+__all__ = ["load_results", "replay", "run"]
 
 # the re-export modules beside this file (comexp/<name>.py)
 SHORT_MODULES = ("estimator", "perception", "scene", "objects", "simulator", "reports")

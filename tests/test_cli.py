@@ -72,7 +72,7 @@ def test_help_and_cfg_work_from_any_directory(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     cfg = yaml.safe_load(r.stdout)
     assert cfg["speed"] == 4.0 and cfg["floor"]["orientations"] == ["xy", "yx"]
-    assert cfg["estimator"]["theta_T"] == 1.0 and cfg["workers"] == 2
+    assert cfg["estimator"]["theta_T"] == 1.0 and cfg["workers"] is None
     assert list(tmp_path.iterdir()) == []
 
 

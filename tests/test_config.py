@@ -45,7 +45,7 @@ def test_defaults_follow_the_public_contract() -> None:
     assert exp.speed == 40.0 and exp.pusher.mu == [0.1, 1.0]
     assert exp.grid.objects is None and exp.grid.coms_per_object == 10
     assert exp.grid.izz_scales == [1.0, 10.0]
-    assert exp.workers == 2 and exp.ray.address is None
+    assert exp.workers is None and exp.ray.address is None
     assert exp.db == "results/comexp.db" and exp.seed == 0
     est = exp.estimator
     assert (list(est.w), est.theta_T, est.C_bw, est.n_push, est.rotation_source) == (

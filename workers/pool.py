@@ -34,27 +34,8 @@ from .actor import (
 
 log = logging.getLogger("comexp.pool")
 
-# `workers`: a positive count, `auto` (every CPU of the Ray cluster, or of this machine for a
-# local Ray), or None (the default: 2 on a local Ray, `auto` when the job joins a cluster).
-AUTO = "auto"
-DEFAULT_LOCAL_WORKERS = 2
-
-
-def check_workers(workers: Any) -> int | str | None:
-    """`workers` as configured, checked: a count >= 1, `AUTO` or None; ValueError (one line)
-    otherwise. A count given as text ("4", from a command line) becomes an int."""
-    if workers is None:
-        return None
-    if isinstance(workers, str):
-        text = workers.strip().lower()
-        if text == AUTO:
-            return AUTO
-        if not text.isdigit():
-            raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
-        workers = int(text)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
-    return workers
+# `workers` (AUTO, DEFAULT_LOCAL_WORKERS, check_workers) is checked where the config is
+from comexp.experiment.config import AUTO, DEFAULT_LOCAL_WORKERS, check_workers  # noqa: E402
 
 
 def local_ray_cpus(workers: Any) -> int | None:

@@ -175,6 +175,27 @@ SETTINGS_FIELDS: dict[str, str] = {
 _CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 
 
+
+AUTO = "auto"
+DEFAULT_LOCAL_WORKERS = 2
+
+
+def check_workers(workers: Any) -> int | str | None:
+    """`workers` as configured, checked: a count >= 1, `AUTO` or None; ValueError (one line)
+    otherwise. A count given as text ("4", from a command line) becomes an int."""
+    if workers is None:
+        return None
+    if isinstance(workers, str):
+        text = workers.strip().lower()
+        if text == AUTO:
+            return AUTO
+        if not text.isdigit():
+            raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
+        workers = int(text)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
+    return workers
+
 @dataclass
 class ExperimentConfig:
     """One Hydra job = one (backend, floor, speed); the grid fans out over the rest."""
@@ -187,7 +208,9 @@ class ExperimentConfig:
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
-    workers: int = 2
+    # a count, `auto` (every CPU of the Ray cluster, or of this machine for a local Ray), or
+    # null: 2 on a local Ray, `auto` when the job joins a cluster (`ray.address` set)
+    workers: Any = None
     ray: RayConfig = field(default_factory=RayConfig)
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     db: str = "results/comexp.db"  # SQLAlchemy URL or file path (relative to the current dir)
@@ -332,8 +355,10 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
             raise ConfigError("grid.objects must not be empty (omit it to use every object)")
         if len(set(g.objects)) != len(g.objects):
             raise ConfigError(f"grid.objects has duplicates: {list(g.objects)}")
-    if cfg.workers < 1:
-        raise ConfigError(f"workers must be >= 1, got {cfg.workers}")
+    try:
+        check_workers(cfg.workers)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     if cfg.execution.batch_size < 1:
         raise ConfigError(f"execution.batch_size must be >= 1, got {cfg.execution.batch_size}")
     if not cfg.execution.restart_timeout_s > 0:
@@ -385,6 +410,12 @@ def prepare_job(cfg: DictConfig) -> PreparedJob:
     """
     exp = to_experiment(cfg)
     est = validate(exp)
+    from comexp.experiment.platform import check_backend
+
+    try:
+        check_backend(exp.backend.name)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     sources = OmegaConf.select(cfg, "hydra.runtime.config_sources")
     if sources is None:
         from hydra.core.hydra_config import HydraConfig
