@@ -175,7 +175,6 @@ SETTINGS_FIELDS: dict[str, str] = {
 _CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 
 
-
 AUTO = "auto"
 DEFAULT_LOCAL_WORKERS = 2
 
@@ -195,6 +194,7 @@ def check_workers(workers: Any) -> int | str | None:
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
     return workers
+
 
 @dataclass
 class ExperimentConfig:
