@@ -117,17 +117,23 @@ def test_diagonal_slide_follows_the_elliptic_law(sim, mu, angle_deg):
 # --- spin-down -----------------------------------------------------------------------------
 
 
-@cache
 def closed_form_spin_decel(shape: str, com: tuple[float, float], mu: float) -> float:
     """Angular deceleration (rad/s^2) of a prism spinning about its CoM under linear (Winkler)
     pressure centred under the CoM: mu * integral(p |r - G| dA) / Izz, by fine quadrature."""
+    return mu * _spin_moment_per_mu(shape, com)
+
+
+@cache
+def _spin_moment_per_mu(shape: str, com: tuple[float, float]) -> float:
+    """integral(p |r - G| dA) / Izz on 40,000 clipped cells (100x the model's samples; the
+    clipped cells' quadrature error is O(h^2): 160,000 cells change it by < 2e-5 relative)."""
     from comexp.backends.floor_friction import WinklerPressure, footprint_samples
 
     obj = _spin_object(shape, com)
-    pts, area = footprint_samples(np.asarray(obj.outline_m), 160_000)
+    pts, area = footprint_samples(np.asarray(obj.outline_m), 40_000)
     d = pts - np.asarray(obj.com_m)
     normal = WinklerPressure(d, area, obj.mass_kg * GRAVITY_M_S2).forces(np.zeros(2))
-    return mu * float(normal @ np.hypot(d[:, 0], d[:, 1])) / obj.izz_kg_m2
+    return float(normal @ np.hypot(d[:, 0], d[:, 1])) / obj.izz_kg_m2
 
 
 def _spin_object(shape: str, com: tuple[float, float]):
