@@ -19,6 +19,10 @@ Use with a real robot (no simulator)::
     region, estimate = estimate_com(region, pushes, pixel_m=0.0027)
 
 or drive Algorithm 1 step by step with `ComEstimator` (it proposes the next contact).
+Pushes observed in the world frame, with the object's pose before each one, go through
+`estimate_com_world` (`WorldPush`), which maps them into the object frame and returns the
+estimate in both frames; `region_from_outline` and `outline_contacts` give the region and the
+contact candidates of a polygon outline. Frames and units: docs/real_robot.md.
 
 `EstimatorSettings.method="magnitude"` (ours, beyond the paper; docs/method.md, "Beyond the
 paper") also uses how much the object turns: within the region the signs allow, the CoM is the
@@ -44,6 +48,9 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import shapely
+
+from comexp.method.geometry import ccw, centroid, simplify
+from comexp.method.scene import Pose2D, wrap_angle
 
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
@@ -562,6 +569,212 @@ class ComEstimator:
         if self.posterior is not None:
             self.posterior.observe(contact_m, direction, rotation_deg)
         return decision
+
+
+# --- the real-robot path: an outline and pushes observed in the world frame ------------------
+# Frames and units, written once in docs/real_robot.md: world z up, yaw CCW about +z (rad);
+# the object frame is fixed to the object, its origin at the outline's area centroid; metres.
+
+# how far from the origin an outline's centroid may be for the outline to count as centred:
+# far below a pixel (~2.7 mm), so the estimate does not depend on it
+OUTLINE_CENTRED_TOL_M = 1e-4
+
+
+def _as_pose(pose: Pose2D | Sequence[float]) -> Pose2D:
+    if isinstance(pose, Pose2D):
+        return pose
+    x_m, y_m, yaw_rad = (float(v) for v in pose)
+    return Pose2D(x_m, y_m, yaw_rad)
+
+
+def _rotate(v: Sequence[float] | np.ndarray, angle_rad: float) -> np.ndarray:
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    x, y = float(v[0]), float(v[1])
+    return np.array([c * x - s * y, s * x + c * y])
+
+
+def _xy(v: Sequence[float] | np.ndarray) -> tuple[float, float]:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (2,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"expected a finite (x, y) pair, got {v!r}")
+    return float(a[0]), float(a[1])
+
+
+def region_from_outline(outline_m: np.ndarray, pixel_m: float) -> np.ndarray:
+    """The paper's initial CoM region for a polygon outline: the points of a regular grid of
+    spacing `pixel_m` (anchored at the frame's origin) inside the outline's convex hull, in the
+    outline's frame, (n, 2) metres. Why the hull: the CoM of a non-convex object can lie
+    outside its footprint (a U, a C); the paper starts from the hull's pixels."""
+    from comexp.method.perception import hull_region  # cv2 and numba: only when needed
+
+    outline = np.asarray(outline_m, dtype=float)
+    hull = np.asarray(shapely.MultiPoint(outline).convex_hull.exterior.coords)[:-1]
+    return hull_region(hull, float(pixel_m))
+
+
+def outline_contacts(
+    outline_m: np.ndarray,
+    spacing_m: float = 0.005,
+    corner_clearance_m: float = 0.005,
+    corner_deg: float = 20.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Contact candidates of a polygon outline: (contacts_m (M, 2), normals (M, 2)), points
+    every `spacing_m` of arc length (the first half a spacing after the first vertex) and
+    their inward unit normals, i.e. the push directions, in the outline's frame.
+
+    Points closer than `corner_clearance_m` to a corner (a vertex where the outline turns by
+    more than `corner_deg`, convex or reflex) are left out: there the push direction is
+    ill-defined. A polygon's normals and arc length are exact, so this samples its edges
+    directly; `comexp.perception.sample_contacts` is the same rule for a contour traced in an
+    image, whose normals are fitted. Either vertex order; repeated and collinear vertices are
+    ignored. Feed them to `ComEstimator` (with `reachable_contacts`' pusher check).
+    """
+    if not (math.isfinite(spacing_m) and spacing_m > 0):
+        raise ValueError(f"spacing_m must be > 0, got {spacing_m!r}")
+    if not (math.isfinite(corner_clearance_m) and corner_clearance_m >= 0):
+        raise ValueError(f"corner_clearance_m must be >= 0, got {corner_clearance_m!r}")
+    p = simplify(ccw(outline_m))
+    edges = np.roll(p, -1, axis=0) - p
+    lengths = np.linalg.norm(edges, axis=1)
+    t = edges / lengths[:, None]
+    inward = np.stack([-t[:, 1], t[:, 0]], axis=1)  # left of a CCW traversal
+    t_in = np.roll(t, 1, axis=0)  # the edge arriving at vertex i
+    turn = np.degrees(np.abs(np.arctan2(cross2(t_in, t), (t_in * t).sum(axis=1))))
+    corners = p[turn > corner_deg]
+    starts = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+    s = (np.arange(int(lengths.sum() // spacing_m)) + 0.5) * spacing_m
+    edge = np.clip(np.searchsorted(starts, s, side="right") - 1, 0, len(p) - 1)
+    pts = p[edge] + (s - starts[edge])[:, None] * t[edge]
+    normals = inward[edge]
+    if len(corners) and len(pts):
+        d = np.linalg.norm(pts[:, None, :] - corners[None, :, :], axis=2).min(axis=1)
+        keep = d >= corner_clearance_m
+        pts, normals = pts[keep], normals[keep]
+    return pts, normals
+
+
+@dataclass(frozen=True)
+class WorldPush:
+    """One push as a robot observes it, in the world frame (docs/real_robot.md): the object's
+    pose before the push (world x, y in m, yaw in rad, CCW about +z), the contact point (m)
+    and the push direction (the inward contact normal; normalised here), and how much the
+    object turned: either measured, `rotation_deg` (CCW positive), or from `pose_after`, the
+    pose once it is at rest again (the yaw change, wrapped to (-180, 180] deg: a push that
+    turns the object by more than half a turn needs `rotation_deg`). Exactly one of the two.
+
+    Poses may be `Pose2D` or (x_m, y_m, yaw_rad) tuples; they are stored as `Pose2D`.
+    `line_direction`: see `ObservedPush` (world frame here; `magnitude` only).
+    """
+
+    pose_before: Pose2D
+    contact_m: tuple[float, float]
+    direction: tuple[float, float]
+    rotation_deg: float | None = None
+    pose_after: Pose2D | None = None
+    line_direction: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__  # frozen: normalise the inputs once, here
+        set_(self, "pose_before", _as_pose(self.pose_before))
+        set_(self, "contact_m", _xy(self.contact_m))
+        d = np.asarray(_xy(self.direction))
+        if np.linalg.norm(d) == 0:
+            raise ValueError("direction must be a non-zero vector")
+        set_(self, "direction", _xy(d / np.linalg.norm(d)))
+        if self.line_direction is not None:
+            set_(self, "line_direction", _xy(self.line_direction))
+        if (self.rotation_deg is None) == (self.pose_after is None):
+            raise ValueError("a WorldPush needs exactly one of rotation_deg and pose_after")
+        if self.pose_after is not None:
+            set_(self, "pose_after", _as_pose(self.pose_after))
+        elif not math.isfinite(self.rotation_deg):
+            raise ValueError(f"rotation_deg must be finite, got {self.rotation_deg!r}")
+
+    @property
+    def turn_deg(self) -> float:
+        """The object's CCW turn during the push, degrees: measured, or from the poses."""
+        if self.rotation_deg is not None:
+            return float(self.rotation_deg)
+        assert self.pose_after is not None
+        return math.degrees(wrap_angle(self.pose_after.yaw_rad - self.pose_before.yaw_rad))
+
+    def in_object_frame(self) -> ObservedPush:
+        """The same push in the object frame (the frame is fixed to the object, so the pose
+        before the push maps it there, whatever the object did in earlier pushes)."""
+        yaw = self.pose_before.yaw_rad
+        contact = self.pose_before.to_object(np.asarray(self.contact_m))
+        line = None if self.line_direction is None else _xy(_rotate(self.line_direction, -yaw))
+        return ObservedPush(
+            contact_m=_xy(contact),
+            direction=_xy(_rotate(self.direction, -yaw)),
+            rotation_deg=self.turn_deg,
+            line_direction=line,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class WorldEstimate:
+    """What `estimate_com_world` returns: the estimate in the object frame and in the world
+    at the first pose, the final region (object frame), and the pushes as the object-frame
+    estimator saw them."""
+
+    com_object_m: np.ndarray  # (2,), object frame
+    com_world_m: np.ndarray  # (2,), world frame, the object at `first_pose`
+    first_pose: Pose2D
+    region_m: np.ndarray  # (n, 2), object frame
+    pushes: tuple[ObservedPush, ...]
+
+
+def estimate_com_world(
+    outline_m: np.ndarray,
+    pushes: Iterable[WorldPush],
+    pixel_m: float,
+    settings: EstimatorSettings | None = None,
+    max_contact_offset_m: float | None = 0.01,
+) -> WorldEstimate:
+    """`estimate_com` for pushes observed in the world frame.
+
+    `outline_m` is the footprint polygon in the object frame, whose origin is the outline's
+    area centroid (ValueError if it is off by more than `OUTLINE_CENTRED_TOL_M`: the poses
+    would then be of another point); the region is `region_from_outline(outline_m, pixel_m)`.
+    Each push is mapped into the object frame with its own pose before the push
+    (`WorldPush.in_object_frame`), then Algorithm 2 runs as in `estimate_com`.
+
+    `max_contact_offset_m`: a contact that lands farther than this from the outline in the
+    object frame is refused (ValueError naming the push): almost always a frame mistake (yaw in
+    degrees, clockwise, or a y-down world). None skips the check.
+    """
+    outline = np.asarray(outline_m, dtype=float)
+    c = centroid(outline)
+    if np.hypot(*c) > OUTLINE_CENTRED_TOL_M:
+        raise ValueError(
+            f"outline_m: its centroid is at ({c[0]:.4f}, {c[1]:.4f}) m, not at the object frame's "
+            "origin: pass outline_m - centroid, and poses of the centroid "
+            "(Pose2D.to_world(centroid), same yaw)"
+        )
+    world = list(pushes)
+    if not world:
+        raise ValueError("estimate_com_world needs at least one push (its pose fixes the frame)")
+    local = tuple(w.in_object_frame() for w in world)
+    if max_contact_offset_m is not None:
+        ring = shapely.LinearRing(outline)
+        for k, push in enumerate(local):
+            off = ring.distance(shapely.Point(push.contact_m))
+            if off > max_contact_offset_m:
+                raise ValueError(
+                    f"push {k}: its contact is {off * 100:.1f} cm from the outline in the object "
+                    "frame: check the frames (pose yaw in rad, CCW about +z; world z up)"
+                )
+    region0 = region_from_outline(outline, pixel_m)
+    region, com = estimate_com(region0, local, pixel_m, settings)
+    first = world[0].pose_before
+    return WorldEstimate(
+        com_object_m=com,
+        com_world_m=first.to_world(com),
+        first_pose=first,
+        region_m=region,
+        pushes=local,
+    )
 
 
 # --- plug-in estimators ----------------------------------------------------------------------
