@@ -292,7 +292,7 @@ DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 # Defaults the docs quote in prose: (config key, file, pattern whose group 1 is the value).
 # Maintained by hand: a default quoted somewhere new belongs here.
 PROSE_DEFAULTS = [
-    ("workers", "docs/operations.md", r"`workers` actors \(default (\d+)\)"),
+    ("workers", "docs/operations.md", r"`workers` actors \(default `(\w+)`"),
     ("camera.fps", "docs/method.md", r"Default `camera\.fps = ([\d.]+)`"),
     ("episode.push_length_cm", "docs/method.md", r"`episode\.push_length_cm`, ([\d.]+) cm"),
     (
@@ -329,7 +329,7 @@ def _config_value(cfg, key: str):
     choices = cfg.hydra.runtime.choices
     if key in choices:
         return choices[key]
-    if OmegaConf.select(cfg, key) is None and "." not in key:  # a knob named without its node
+    if "." not in key and key not in cfg:  # a knob named without its node
         (key,) = [f"{node}.{key}" for node in cfg if OmegaConf.select(cfg, f"{node}.{key}")]
     node = OmegaConf.select(cfg, key, throw_on_missing=True)
     return OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
