@@ -474,7 +474,7 @@ class MujocoSimulator(Simulator):
         settings: SimSettings | None = None,
         contact: MujocoContactSettings | None = None,
         floor_friction: str = "model",
-        renderer: str = "engine",
+        renderer: str = "raycast",
     ) -> None:
         super().__init__(settings)
         if floor_friction not in FLOOR_FRICTION_CHOICES:

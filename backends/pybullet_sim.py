@@ -219,7 +219,7 @@ class PybulletSimulator(Simulator):
         self,
         settings: SimSettings | None = None,
         floor_friction: str = "model",
-        renderer: str = "engine",
+        renderer: str = "raycast",
     ) -> None:
         super().__init__(settings)
         if floor_friction not in FLOOR_FRICTION_CHOICES:

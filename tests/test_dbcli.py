@@ -260,3 +260,19 @@ def test_claims_print_means_and_verdicts(study_path: Path, capsys) -> None:
     assert "| backend | floor | speed cm/s | n | mean error cm | 95% CI | paper |" in out
     assert "dynamic beats quasi-static" in out and "| aniso |" not in out
     assert out.count("**") % 2 == 0 and any(v in out for v in ("holds", "fails", "inconclusive"))
+
+
+def test_help_of_every_command_prints() -> None:
+    """argparse formats help lazily: a stray % in one help text broke `comexp-db --help`."""
+    import subprocess
+    import sys
+
+    from comexp.cli.query import build_parser
+
+    parser = build_parser()
+    parser.format_help()
+    for action in parser._subparsers._group_actions:  # every subcommand's own help
+        for sub in action.choices.values():
+            sub.format_help()
+    r = subprocess.run([sys.executable, "-m", "comexp.cli.query", "--help"], capture_output=True)
+    assert r.returncode == 0, r.stderr

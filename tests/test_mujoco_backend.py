@@ -31,7 +31,7 @@ THROUGH_COM_IMPACT_DEG = 0.25
 
 @pytest.fixture(scope="module")
 def sim():
-    s = mujoco_sim.MujocoSimulator()
+    s = mujoco_sim.MujocoSimulator(renderer="engine")  # its own renderer is tested here
     yield s
     s.close()
 

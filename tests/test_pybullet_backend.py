@@ -15,7 +15,7 @@ from comexp.method.scene import FloorSpec, Pose2D, PushCommand, SceneSpec
 
 @pytest.fixture(scope="module")
 def sim():
-    s = make_simulator("pybullet")
+    s = make_simulator("pybullet", renderer="engine")  # its own renderer is tested here
     yield s
     s.close()
 

@@ -89,3 +89,27 @@ def test_engine_and_raycast_measure_the_same_rotations(backend: str) -> None:
         assert np.all(np.sign(meas[turned]) == np.sign(true[turned])), renderer
     for renderer, err in errors.items():
         assert err.max() < TRACKING_NOISE_DEG, (renderer, err)
+
+
+@pytest.mark.parametrize("backend", ENGINES)
+def test_the_renderer_is_part_of_the_identity_but_older_rows_keep_theirs(backend: str) -> None:
+    from comexp.experiment.simulator import physics_identity
+
+    before = physics_identity(backend, options={"floor_friction": "model"})  # no such option
+    engine = physics_identity(backend, options={"floor_friction": "model", "renderer": "engine"})
+    raycast = physics_identity(backend, options={"floor_friction": "model", "renderer": "raycast"})
+    assert engine == before and raycast != engine
+
+
+@pytest.mark.parametrize("renderer", ["engine", "raycast"])
+def test_the_job_hands_its_renderer_to_the_simulator(renderer: str) -> None:
+    from hydra import compose, initialize_config_module
+
+    from comexp.experiment.config import prepare_job, simulator_options
+
+    with initialize_config_module("comexp.conf", version_base="1.3"):
+        cfg = compose("config", overrides=["backend=mujoco", f"camera.renderer={renderer}"])
+    opts = simulator_options(prepare_job(cfg).cfg)
+    assert opts["renderer"] == renderer
+    with make_simulator("mujoco", **opts) as sim:
+        assert sim.renderer == renderer

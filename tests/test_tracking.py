@@ -273,7 +273,7 @@ def test_engines_render_the_pusher_and_the_mask_removes_exactly_it(backend):
     """The engines draw their pusher (a sphere / a capsule) in the depth image; touching the
     object it would join its blob. Masked by the known pusher position, the object's mask is
     the one without the pusher, pixel for pixel (measured: 12-18 pusher pixels, 0 left)."""
-    sim = make_simulator(backend, floor_friction="model")
+    sim = make_simulator(backend, floor_friction="model", renderer="engine")
     try:
         for pose, xy in [
             (Pose2D(-0.08, 0.02, 0.0), (-0.08 + 0.04 + 0.0052, 0.03)),
@@ -361,7 +361,7 @@ def test_engine_tracking_frames_are_the_object_window_of_the_full_image(backend)
     (also tilted and lifted, at the image's edge where the window is clipped) and the pusher
     where it overlaps, and it costs a few % of the pixels. The full image is unchanged."""
     tol_m = {"pybullet": 1e-6, "mujoco": 2e-5}[backend]
-    sim = make_simulator(backend, floor_friction="model")
+    sim = make_simulator(backend, floor_friction="model", renderer="engine")
     try:
         cases = [
             (Pose2D(0.05, -0.03, 0.4), 0.0, (0.05 - 0.04 * math.cos(0.4) - 0.006, -0.045)),
@@ -406,7 +406,7 @@ def test_engine_tracking_frames_have_the_method_s_geometry(backend):
     """Through the window's camera model a tracking frame is metric and in the method's frames
     (docs/method.md): an object at +y lies in the image's upper half (rows grow downward), and
     a CCW turn about +z is tracked as a positive yaw, at the true position."""
-    sim = make_simulator(backend, floor_friction="model")
+    sim = make_simulator(backend, floor_friction="model", renderer="engine")
     try:
         sim.build(replace(build_scene(box_spec(backend)), initial_pose=Pose2D(0.0, 0.0, 0.0)))
         perc, obs0 = perceive_first(sim.render_depth())

@@ -106,7 +106,7 @@ _nonneg_int = _int_at_least(0)
 
 def _add_condition_filters(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("condition filters")
-    g.add_argument("--backend", help="pybullet | mujoco")
+    g.add_argument("--backend", help="planar | pybullet | mujoco")
     g.add_argument("--floor", help="iso | aniso")
     g.add_argument("--speed", type=_pos_float, metavar="CM_S", help="pushing speed, cm/s")
     g.add_argument(
@@ -144,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     pp.add_argument("--format", choices=("md", "json"), default="md")
 
     c = sub.add_parser(
-        "claims", help="the paper's claims per study: paired differences, bootstrap 95% CIs"
+        "claims", help="the paper's claims per study: paired differences, bootstrap 95%% CIs"
     )
     _add_condition_filters(c)
     c.add_argument("--seed", type=_nonneg_int, default=0, help="bootstrap seed (0)")

@@ -219,11 +219,9 @@ class ExperimentConfig:
 
 def simulator_options(cfg: Any) -> dict[str, str]:
     """The simulator's constructor options for a job (`make_simulator`, the workers' pool and
-    the episodes' physics identity): the backend's own, and the engines' renderer. The
-    renderer is named only when it is not the engine's own, so that rows stored before the
-    option existed (engine-rendered) keep their identity."""
+    the episodes' physics identity): the backend's own, and the engines' renderer."""
     opts = dict(cfg.backend.options())
-    if cfg.backend.name != "planar" and cfg.camera.renderer != "engine":
+    if cfg.backend.name != "planar":
         opts["renderer"] = cfg.camera.renderer
     return opts
 

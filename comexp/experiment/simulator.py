@@ -571,9 +571,10 @@ def physics_identity(
     module = importlib.import_module(module_name)
     engine = getattr(module, "ENGINE_DISTRIBUTION", None)
     engine_v = metadata.version(engine) if engine else "none"
-    text = repr(
-        (module.PHYSICS_SETTINGS, settings or SimSettings(), sorted((options or {}).items()))
-    )
+    # the engine's own renderer is what every row had before `camera.renderer` existed: it is
+    # left out, so that those rows keep their identity
+    opts = {k: v for k, v in (options or {}).items() if (k, v) != ("renderer", "engine")}
+    text = repr((module.PHYSICS_SETTINGS, settings or SimSettings(), sorted(opts.items())))
     digest = hashlib.sha256(text.encode()).hexdigest()[:10]
     return f"{name}/{module.PHYSICS_VERSION}/{engine or 'numpy'}-{engine_v}/{digest}"
 

@@ -236,9 +236,9 @@ def backend_options_for(spec: EpisodeSpec) -> dict[str, Any]:
     )
 
     choices: list[dict[str, str]] = [{}]
-    if spec.backend != "planar":  # the renderer is named only when not the engine's own
+    if spec.backend != "planar":
         choices = [
-            {"floor_friction": f, **({} if r == "engine" else {"renderer": r})}
+            {"floor_friction": f, "renderer": r}
             for r in RENDERER_CHOICES
             for f in FLOOR_FRICTION_CHOICES
         ]
