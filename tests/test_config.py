@@ -93,9 +93,19 @@ def test_estimator_method_is_a_knob() -> None:
 
 
 def test_wrong_types_are_rejected_while_composing() -> None:
-    for bad in ("speed=abc", "grid.coms_per_object=1.5", "workers=two", "nope=1"):
+    for bad in ("speed=abc", "grid.coms_per_object=1.5", "nope=1"):
         with pytest.raises(ConfigCompositionException):
             _compose(bad)
+
+
+@pytest.mark.parametrize("bad", ["two", "0", "-1", "1.5"])
+def test_workers_is_a_count_or_auto(bad: str) -> None:
+    """`workers` takes a count, `auto` or null (so it is typed loosely): validation refuses the
+    rest in one line."""
+    with pytest.raises(ConfigError, match="workers must be a count >= 1 or auto"):
+        prepare_job(_compose(f"workers={bad}"))
+    assert prepare_job(_compose("workers=auto")).cfg.workers == "auto"
+    assert prepare_job(_compose("workers=3")).cfg.workers == 3
 
 
 @pytest.mark.parametrize(

@@ -108,7 +108,8 @@ def test_the_job_hands_its_renderer_to_the_simulator(renderer: str) -> None:
     from comexp.experiment.config import prepare_job, simulator_options
 
     with initialize_config_module("comexp.conf", version_base="1.3"):
-        cfg = compose("config", overrides=["backend=mujoco", f"camera.renderer={renderer}"])
+        overrides = ["backend=mujoco", f"camera.renderer={renderer}", "db=/tmp/unused.db"]
+        cfg = compose("config", overrides=overrides, return_hydra_config=True)
     opts = simulator_options(prepare_job(cfg).cfg)
     assert opts["renderer"] == renderer
     with make_simulator("mujoco", **opts) as sim:

@@ -89,7 +89,9 @@ def test_replay_runs_a_native_episode_with_native_friction(tmp_path: Path) -> No
         izz_scale=1.0,
         camera_fps=0.0,
         estimator=EstimatorSettings(n_push=2),
-        physics=physics_identity("pybullet", options={"floor_friction": "native"}),
+        physics=physics_identity(
+            "pybullet", options={"floor_friction": "native", "renderer": "raycast"}
+        ),
     )
     with make_simulator("pybullet", floor_friction="native") as sim:
         native = run_episode(spec, sim)
