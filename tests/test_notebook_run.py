@@ -33,7 +33,7 @@ def _readme_block() -> str:
 
 
 def _overrides(block: str) -> list[str]:
-    (args,) = re.findall(r"comexp\.run\((\[.*?\])\)", block, flags=re.S)
+    (args,) = re.findall(r"comexp\.run\(\s*(\[.*?\])\s*,?\s*\)", block, flags=re.S)
     return eval(args)  # noqa: S307 - a list literal of our own README
 
 
@@ -121,7 +121,7 @@ def test_a_rerun_returns_the_stored_rows_without_running(runs: dict, monkeypatch
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["backend=planar", "workers=0"], "workers must be >= 1, got 0"),
+        (["backend=planar", "workers=0"], "workers must be a count >= 1 or auto, got 0"),
         (["backend=nope"], "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)"),
         (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'"),
         (["speed=40,4"], "comexp.run runs one job; call it once per value of: ['speed=40,4']"),

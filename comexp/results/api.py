@@ -12,14 +12,13 @@ grouping rule), so a notebook groups exactly as the tables and plots do.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
-import logging
 import os
+import subprocess
 import sys
 import typing
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from comexp.results.schema import EPISODES, PUSHES, SWEEPS
@@ -78,23 +77,16 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
     `load_results` gives (this job's grid only, whoever stored them: a rerun returns the
     stored rows without running anything again).
 
-    The same path as the command line: Hydra composes `overrides` (strings, as typed after
-    `comexp`) onto the packaged config, the validation callback checks the job before Hydra
-    creates its output folder, and `comexp.cli.run.run_job` runs the episodes on Ray (a local
-    Ray, started once per process and reused by later calls; `ray.address` joins a cluster),
-    writes the database and the job's reports into its output folder. `config_dir` is
-    `--config-dir` (your own objects: DIR/object/NAME.yaml).
+    It is the command line itself: `comexp OVERRIDES` runs in a child process (the job's
+    Ray, database, reports and printed lines are the command's), then this job's rows are
+    read back by their episode keys. `config_dir` is `--config-dir` (your own objects:
+    DIR/object/NAME.yaml).
 
     Bad input raises ValueError with the command line's one-line message; nothing is
     written then. One job per call: call it once per job of a sweep.
     """
-    from hydra._internal.hydra import Hydra
-    from hydra._internal.utils import create_automatic_config_search_path
-    from hydra.core.config_search_path import SearchPathQuery
-    from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
-    from omegaconf.errors import OmegaConfBaseException
 
     from comexp.cli import run as cli
 
@@ -110,81 +102,44 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
     sweeps = [o.input_line for o in parsed if o.is_sweep_override()]
     if sweeps:
         raise ValueError(f"comexp.run runs one job; call it once per value of: {sweeps}")
-
-    search_path = create_automatic_config_search_path(None, cli.__name__, "pkg://comexp.conf")
+    extra: list[str] = []
     if config_dir is not None:
         path = os.path.abspath(config_dir)
         if not os.path.isdir(path):
             raise ValueError(f"config_dir {path!r} not found")
-        search_path.prepend("command-line", f"file://{path}", SearchPathQuery(provider="schema"))
-
-    found: dict[str, Any] = {}
-
-    def task(cfg: Any) -> dict[str, Any]:
-        summary = cli.run_job(cfg)
-        found["db"], found["keys"] = _job_keys(cfg)
-        return summary
-
-    global_hydra = GlobalHydra.instance()
-    previous = global_hydra.hydra if global_hydra.is_initialized() else None
-    cli._scrub_log_records(args)
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    try:
-        with _as_command_line(args), _logging_restored():
-            hydra = Hydra.create_main_hydra2(task_name="run", config_search_path=search_path)
-            hydra.run(config_name="config", task_function=task, overrides=args)
-    except cli.Abort as e:  # the validation callback's one line
-        raise ValueError(e.message) from None
-    except (HydraException, OmegaConfBaseException) as e:
-        raise ValueError(cli._hydra_error_line(e)) from None
-    finally:
-        global_hydra.clear()
-        if previous is not None:
-            global_hydra.initialize(previous)
-    with ResultsDB(found["db"], readonly=True) as db:
-        return _frame(db.episodes_by_keys(found["keys"]))
+        extra = ["--config-dir", path]
+    env = {"RAY_USAGE_STATS_ENABLED": "0", **os.environ}
+    r = subprocess.run(
+        [sys.executable, "-c", "from comexp.cli.run import main; main()", *extra, *args],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    sys.stdout.write(r.stdout)
+    if r.returncode != 0:
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        line = lines[-1] if lines else f"comexp exited with {r.returncode}"
+        raise ValueError(line.removeprefix("comexp: error: "))
+    db, keys = _job_keys(args, extra[1] if extra else None)
+    with ResultsDB(db, readonly=True) as handle:
+        return _frame(handle.episodes_by_keys(keys))
 
 
-def _job_keys(cfg: Any) -> tuple[str, list[str]]:
-    """The job's database and its grid's episode keys, as `run_job` computes them."""
+def _job_keys(args: list[str], config_dir: str | None) -> tuple[str, list[str]]:
+    """The job's database and its grid's episode keys, composed as the command composes them
+    (Hydra's compose API: the packaged config, the user's config directory first)."""
+    from hydra import compose, initialize_config_module
+
     from comexp.experiment.config import prepare_job
     from comexp.experiment.grid import expand_grid
     from comexp.results.identity import episode_key
 
+    search = [f"hydra.searchpath=[file://{config_dir}]"] if config_dir else []
+    with initialize_config_module("comexp.conf", version_base="1.3"):
+        cfg = compose("config", overrides=[*args, *search], return_hydra_config=True)
     job = prepare_job(cfg)
     specs = expand_grid(job.cfg, job.objects, estimator=job.estimator)
     return job.cfg.db, [episode_key(s) for s in specs]
-
-
-@contextlib.contextmanager
-def _as_command_line(args: list[str]) -> Iterator[None]:
-    """`sys.argv` as `comexp ARGS` while the job runs: the sweep row records the command line
-    that would run the same job (`run_job` reads it from `sys.argv`)."""
-    saved = sys.argv
-    sys.argv = ["comexp", *args]
-    try:
-        yield
-    finally:
-        sys.argv = saved
-
-
-@contextlib.contextmanager
-def _logging_restored() -> Iterator[None]:
-    """Hydra configures logging for the job (console, and the job's log file) as the command
-    line does; afterwards the caller's logging is as it was."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    try:
-        yield
-    finally:
-        for h in root.handlers:
-            if h not in handlers:
-                root.removeHandler(h)
-                h.close()
-        for h in handlers:
-            if h not in root.handlers:
-                root.addHandler(h)
-        root.setLevel(level)
 
 
 def _from_json(tp: Any, value: Any) -> Any:
