@@ -31,9 +31,6 @@ from numba import njit
 from comexp.experiment.simulator import pusher_contact_height_m
 from comexp.method.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
 
-ZERO3 = np.zeros(3)
-EMPTY = np.zeros(0)
-
 
 @njit(cache=True)
 def objective_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor):
@@ -587,7 +584,7 @@ class FootprintFriction:
         self.fs[YAW_CACHED] = np.nan
         self.normal = self.pressure.forces(np.zeros(2))
         n = self.normal.shape[0]
-        self.dxw, self.dyw = np.zeros(n), np.zeros(n)  # offsets in world axes (offsets_world)
+        self.dxw, self.dyw = np.zeros(n), np.zeros(n)  # offsets in world axes (offsets_kernel)
         _update_holding(self.geo, self.fs, self.normal)
 
     @property
@@ -598,44 +595,6 @@ class FootprintFriction:
     @property
     def tipped(self) -> bool:
         return bool(self.fs[TIPPED])
-
-    def offsets_world(self, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-        """The samples' offsets from the CoM in world axes (x and y arrays)."""
-        offsets_kernel(self.geo, self.fs, float(yaw), self.dxw, self.dyw)
-        return self.dxw, self.dyw
-
-    def set_cop(self, c_obj: np.ndarray) -> None:
-        """Pressure for a centre of pressure c (object frame, from the CoM); see
-        `set_cop_kernel`."""
-        set_cop_kernel(self.geo, self.fs, self.normal, float(c_obj[0]), float(c_obj[1]))
-
-    def objective(self, xi, xi_hat, w, dx, dy, dt, fr=None, eps=None) -> float:
-        """Value of a step's convex objective (`objective_kernel`); `eps` overrides the
-        smoothing (0: the exact objective). `w` None: no floor term (an impact)."""
-        k, tau, r0 = fr if fr is not None else (0.0, ZERO3, 0.0)
-        eps = self.set.smoothing_m_s if eps is None else eps
-        wv = w if w is not None else EMPTY
-        return value_kernel(
-            xi, xi_hat, self.M, wv, dx, dy, self.mu[0], self.mu[1], dt, eps, k, tau, r0,
-            w is not None,
-        )  # fmt: skip
-
-    def minimise(self, xi0, xi_hat, w, dx, dy, dt, fr=None, a=None, b=0.0):
-        """Damped Newton on the objective, optionally on the plane a . xi = b; returns (xi,
-        the plane's multiplier in N s)."""
-        k, tau, r0 = fr if fr is not None else (0.0, ZERO3, 0.0)
-        wv = w if w is not None else EMPTY
-        av = a if a is not None else ZERO3
-        return minimise_kernel(
-            np.asarray(xi0, dtype=np.float64), np.asarray(xi_hat, dtype=np.float64), self.M,
-            wv, dx, dy, self.mu[0], self.mu[1], dt, self.set.smoothing_m_s, k, tau, r0,
-            w is not None, av, b, a is not None, self.set.newton_tol, self.set.max_newton,
-        )  # fmt: skip
-
-    def free_solve(self, xi_hat: np.ndarray, dx, dy, dt: float) -> np.ndarray:
-        """End-of-step twist under the floor's friction alone (`free_solve_kernel`)."""
-        xi_hat = np.asarray(xi_hat, dtype=np.float64)
-        return free_solve_kernel(self.geo, self.normal, xi_hat, dx, dy, dt)
 
     def impulse(self, xi_hat: np.ndarray, yaw: float, dt: float, pushed: bool) -> np.ndarray:
         """The floor's friction impulse (N s, and N m s about z) over one step of an engine,

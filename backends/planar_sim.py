@@ -324,11 +324,6 @@ class PlanarModel:
         self.ms[XI_X : XI_W + 1] = value
 
     @property
-    def contact_impulse(self) -> float:
-        """The pusher's normal impulse of the last step (N s)."""
-        return float(self.ms[IMPULSE])
-
-    @property
     def tipped(self) -> bool:
         return self.fr.tipped or bool(self.ms[IMPACT_TIPPED])
 
