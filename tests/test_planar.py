@@ -194,3 +194,45 @@ def test_kept_samples_are_the_fresh_ones_and_the_callers_own():
     p1[:] = 0.0
     p2, _ = samples_of(RECT, 400)
     assert np.array_equal(p2, pts)
+
+
+class _CheckEveryChunk(PlanarSimulator):
+    """planar without `_steps_still`: the protocol checks every chunk, as before it existed."""
+
+    def _steps_still(self, targets):
+        return 0
+
+
+def _watched_push(sim, speed_m_s: float, lever_m: float):
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
+    sim.build(SceneSpec(FloorSpec(0.3, 0.3), obj))
+    cmd = contact_push((-0.04, -0.005 + lever_m), (1.0, 0.0), 0.03, speed_m_s, 0.005)
+    frames, still = [], []
+    out = sim.push(
+        cmd,
+        on_frame=lambda f: frames.append((f.t_s, f.pusher_xy_m)),
+        frame_interval_s=1.0 / 30.0,
+        on_still=still.append,
+    )
+    return out, frames, still
+
+
+@pytest.mark.parametrize("speed_m_s", [0.04, 0.4])
+def test_skipping_still_steps_changes_nothing_the_protocol_reports(speed_m_s):
+    """The approach to a resting object, the rest of the hold and the retract run without
+    their checks on planar: the outcome, the frames and the still times are those of checking
+    every chunk, to the bit."""
+    for lever_m in (0.0, 0.012):
+        a = _watched_push(PlanarSimulator(), speed_m_s, lever_m)
+        b = _watched_push(_CheckEveryChunk(), speed_m_s, lever_m)
+        assert a == b
+        assert a[2], "the push has still frames (the approach, the hold): the test sees them"
+
+
+def test_steps_declared_still_that_move_the_object_are_an_error():
+    class Liar(PlanarSimulator):
+        def _steps_still(self, targets):
+            return len(targets)  # claims even the steps that push the object
+
+    with pytest.raises(RuntimeError, match="moved in steps declared still"):
+        _watched_push(Liar(), 0.4, 0.0)
