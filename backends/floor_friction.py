@@ -173,22 +173,12 @@ def minimise_kernel(
             xi[i] += a[i] / M[i] * (b - ax) / den
     g = np.zeros(3)
     H = np.zeros((3, 3))
-    g1 = np.zeros(3)
-    H1 = np.zeros((3, 3))
     y = np.zeros(3)
     z = np.zeros(3)
     step = np.zeros(3)
     trial = np.zeros(3)
-    # The full Newton step's trial point gets the value, gradient and Hessian at once: the
-    # value is `value_kernel`'s to the bit (the same operations in the same order), and when
-    # the step is taken (most of them) they are the next iteration's, which then skips its own
-    # evaluation. `current`: f, g and H are those of xi.
-    f = 0.0
-    current = False
     for _ in range(itmax):
-        if not current:
-            f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
-            current = True
+        f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
         _solve_spd3(H, g, y)
         if constrained:
             _solve_spd3(H, a, z)
@@ -203,20 +193,7 @@ def minimise_kernel(
         dec = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2])
         if dec < tol:
             break
-        for i in range(3):
-            trial[i] = xi[i] + step[i]
-        f1 = _objective_into(
-            trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g1, H1
-        )
-        if f1 <= f - 0.25 * dec:  # the full step is taken
-            for i in range(3):
-                xi[i] = trial[i]
-                g[i] = g1[i]
-                for m in range(3):
-                    H[i, m] = H1[i, m]
-            f = f1
-            continue
-        t = 0.5
+        t = 1.0
         while t > 1e-12:
             for i in range(3):
                 trial[i] = xi[i] + t * step[i]
@@ -226,11 +203,9 @@ def minimise_kernel(
             t *= 0.5
         for i in range(3):
             xi[i] = xi[i] + t * step[i]
-        current = False
     lam = 0.0
     if constrained:
-        if not current:
-            _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
+        _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
         lam = (g[0] * a[0] + g[1] * a[1] + g[2] * a[2]) / (a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
     return xi, lam
 
