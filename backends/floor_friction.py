@@ -160,8 +160,11 @@ def minimise_kernel(
 
     The objective's Hessian is positive definite (the mass matrix plus convex terms), so the
     Newton step is two 3x3 LDL^T solves: y = H^-1 g, z = H^-1 a, and on the plane
-    step = -(y - z (a . y) / (a . z)). Returns the minimiser and the plane's multiplier (an
-    impulse, N s)."""
+    step = -(y - z (a . y) / (a . z)). The backtracking line search (Armijo, 1/4) takes the
+    minimiser of the quadratic through f, its slope and the rejected trial, within [1/10,
+    1/2] of the rejected step: near the norms' kinks a Newton step overshoots by orders of
+    magnitude, which halving pays for one pass over the samples per factor 2.
+    Returns the minimiser and the plane's multiplier (an impulse, N s)."""
     xi = xi0.copy()
     if constrained:
         den = 0.0
@@ -200,7 +203,11 @@ def minimise_kernel(
             f1 = value_kernel(trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor)
             if f1 <= f - 0.25 * t * dec:
                 break
-            t *= 0.5
+            # the quadratic through f, its slope -dec at 0 and f1 at t: its minimiser,
+            # kept within [t / 10, t / 2]
+            curv = f1 - f + dec * t
+            tq = 0.5 * dec * t * t / curv if curv > 0.0 else 0.5 * t
+            t = min(0.5 * t, max(0.1 * t, tq))
         for i in range(3):
             xi[i] = xi[i] + t * step[i]
     lam = 0.0

@@ -758,8 +758,9 @@ class MujocoSimulator(Simulator):
 
 
 # The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "mujoco-4"  # 2: the shared push protocol; 3: compiled footprint friction;
-# 4: the step loop compiled (its 3x3 products in scalars, not BLAS: last-bit differences)
+PHYSICS_VERSION = "mujoco-5"  # 2: the shared push protocol; 3: compiled footprint friction;
+# 4: the step loop compiled (its 3x3 products in scalars, not BLAS: last-bit differences);
+# 5: the footprint friction's line search (results moved within the solver's tolerance)
 ENGINE_DISTRIBUTION = "mujoco"
 PHYSICS_SETTINGS = (DEFAULT_CONTACT, FrictionSettings())
 

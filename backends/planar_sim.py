@@ -130,6 +130,11 @@ def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, 
     """The step's solve with the pusher's unilateral plastic contact and its friction: the
     free solve first; if it would leave the pusher inside, the contact plane as a constraint,
     with a fixed point on the normal impulse that scales the tangential friction.
+    The constrained solve starts from the twist the object brings into the step (projected
+    on the plane), not from the free solve's: on a sustained push that is next to the
+    answer, while the free solve's twist has the pusher's tangential friction far off its
+    kink, where Newton's steps overshoot (3x fewer passes over the samples, the same
+    minimiser: `bench/planar_speed.py --baseline`).
     Returns (xi, normal impulse, tangential impulse)."""
     nx, ny, rx, ry, gap = con
     a = np.array([nx, ny, rx * ny - ry * nx])
@@ -143,6 +148,7 @@ def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, 
     if a[0] * xi[0] + a[1] * xi[1] + a[2] * xi[2] >= b:
         return xi, 0.0, 0.0
     lam = max(lam0, 0.0)
+    xi = xi_hat.copy()  # the step's start: on a sustained push, near its own solution
     for _ in range(8):  # fixed point on the normal impulse of the tangential friction
         k = lam * mu_p if mu_p > 0 and lam > 0 else 0.0
         xi, lam_new = minimise_kernel(xi, xi_hat, M, normal, dxw, dyw, mx, my, dt, eps, k,
@@ -481,7 +487,8 @@ class PlanarSimulator(Simulator):
 
 
 # The model's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "planar-2"  # 2: compiled steps; results moved by rounding only
+PHYSICS_VERSION = "planar-3"  # 2: compiled steps; 3: the solver's start and line search
+# (results moved within the solver's tolerance)
 ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
 PHYSICS_SETTINGS = FrictionSettings()
 

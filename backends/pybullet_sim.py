@@ -199,7 +199,8 @@ def _window_projection(
 
 
 # The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "pybullet-4"  # 2: shared push protocol; 3: compiled friction; 4: roller pusher
+PHYSICS_VERSION = "pybullet-5"  # 2: shared push protocol; 3: compiled friction; 4: roller pusher;
+# 5: the footprint friction's line search (results moved within the solver's tolerance)
 ENGINE_DISTRIBUTION = "pybullet"
 # every setting of this backend that shapes its physics (module constants, solver settings)
 PHYSICS_SETTINGS = {
