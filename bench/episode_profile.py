@@ -58,7 +58,13 @@ PHASES = ("physics (sim.push)", "scene build", "render", "perception", "estimato
 
 def _job(backend: str, floor: str, speed: float, overrides: Sequence[str]) -> Any:
     """The job `comexp` would prepare (Hydra config, validation, objects). The database
-    setting points at a temp dir so nothing is probed or created under results/."""
+    setting points at a temp dir so nothing is probed or created under results/. Prepared
+    once per process and job: `job_specs` and `job_backend_options` of one job share it."""
+    return _prepared_job(backend, floor, float(speed), tuple(overrides))
+
+
+@functools.lru_cache(maxsize=8)
+def _prepared_job(backend: str, floor: str, speed: float, overrides: tuple[str, ...]) -> Any:
     from hydra import compose, initialize_config_module
 
     from comexp.experiment.config import prepare_job

@@ -15,6 +15,8 @@ wall-time ratio and the largest differences in rotation (deg) and final pose are
 second time with the object's start moved by 1e-15 m: the model's own sensitivity to
 rounding (its solver tolerances and stick/slip decisions), the floor under which two
 versions that round differently cannot agree.
+
+`--pushes N` runs N of the 54 pushes, spread over the list (tests/test_bench.py's smoke run).
 """
 
 from __future__ import annotations
@@ -98,9 +100,12 @@ def main() -> None:
     ap.add_argument("--baseline", type=Path, help="directory with an older planar_sim.py")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per push (best kept)")
     ap.add_argument("--self-noise", action="store_true", help="one version vs itself, nudged")
+    ap.add_argument("--pushes", type=int, help="only this many of the pushes, spread out")
     args = ap.parse_args()
     old_cls = load_baseline(args.baseline) if args.baseline else None
     all_cases = cases()
+    if args.pushes:
+        all_cases = all_cases[:: -(-len(all_cases) // args.pushes)][: args.pushes]
     if args.self_noise:
         self_noise(old_cls or PlanarSimulator, all_cases)
         return
