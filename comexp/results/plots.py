@@ -422,7 +422,7 @@ def reconstruct_regions(
     import shapely
 
     from comexp.method.estimator import EstimatorSettings, update_region
-    from comexp.method.perception import hull_region
+    from comexp.method.observation import hull_region
     from comexp.method.scene import CameraSpec
     from comexp.results.api import _from_json
 
