@@ -1,48 +1,82 @@
-"""The one simulator interface that perception, the estimator and the workers use.
+"""The one simulator interface and its push protocol, shared by every backend.
 
 A backend builds a scene from engine-independent dataclasses (`comexp.method.scene`), renders the
-top-down depth image, executes straight pushes and lets the object come to rest. The true
-object state is for evaluation, tests and failure detection only; the estimator never reads it
-unless `rotation_source=oracle` is asked for.
+top-down depth image, executes straight pushes and lets the object come to rest. The push
+protocol (`Simulator.push`, run by `_PushRun`) is written once, here, on primitives each engine
+implements. The true object state is for evaluation, tests and failure detection only; the
+estimator never reads it unless `rotation_source=oracle` is asked for.
+
+What a simulator needs but is not the interface lives beside it: the backends by name and
+their physics identity (`comexp.experiment.registry`), what the camera sees of the object
+(`comexp.experiment.view`), where pusher and object meet (`comexp.experiment.contact`). Their
+names are re-exported here, so that imports from `comexp.experiment.simulator` keep working.
 """
 
 from __future__ import annotations
 
 import enum
-import importlib
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from comexp.experiment.contact import (
+    contact_push,
+    point_polygon_distance,
+    pusher_clearance_m,
+    pusher_contact_height_m,
+)
+from comexp.experiment.registry import (
+    BACKENDS,
+    FLOOR_FRICTION_CHOICES,
+    RENDERER_CHOICES,
+    backend_names,
+    make_simulator,
+    physics_identity,
+)
+from comexp.experiment.view import (
+    crop_camera,
+    object_window_px,
+    outline_radius_m,
+    surely_in_view,
+)
 from comexp.method.scene import (
     CameraModel,
     DepthImage,
     ObjectState,
     Pose2D,
     PushCommand,
-    PusherSpec,
     SceneSpec,
     SimSettings,
     wrap_angle,
 )
 
-BACKENDS: dict[str, str] = {
-    "planar": "comexp.backends.planar_sim:PlanarSimulator",
-    "pybullet": "comexp.backends.pybullet_sim:PybulletSimulator",
-    "mujoco": "comexp.backends.mujoco_sim:MujocoSimulator",
-}
-# How an engine gets the floor's friction: "model" applies the shared footprint model
-# (backends/floor_friction.py) as a force each step, the engine's own object-floor friction off;
-# "native" is the engine's own contact friction (kept to show the difference).
-FLOOR_FRICTION_CHOICES = ("model", "native")
-# How an engine makes its depth images (`camera.renderer`): "raycast" is the exact ray cast of
-# the prism at the engine's pose (`comexp.method.perception.render_prism_depth`, planar's
-# camera; no pusher in the image, which the tracker masks anyway); "engine" is the engine's own
-# renderer (pybullet's tiny renderer, MuJoCo's GL on Mesa).
-RENDERER_CHOICES = ("raycast", "engine")
+__all__ = [
+    "BACKENDS",
+    "FLOOR_FRICTION_CHOICES",
+    "Frame",
+    "PARK_XY_M",
+    "PushOutcome",
+    "PushStatus",
+    "RENDERER_CHOICES",
+    "Simulator",
+    "at_rest",
+    "backend_names",
+    "classify_state",
+    "contact_push",
+    "crop_camera",
+    "make_simulator",
+    "object_window_px",
+    "outline_radius_m",
+    "physics_identity",
+    "point_polygon_distance",
+    "pusher_clearance_m",
+    "pusher_contact_height_m",
+    "surely_in_view",
+]
+
 # Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
 # pusher's top, unreachable by an object still in view.
 PARK_XY_M = (0.0, 0.5)
@@ -88,7 +122,7 @@ class Frame:
 
     The pusher may be in it: the engines render their pusher, touching the object's side.
     Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
-    tracker can mask it (`comexp.method.perception.mask_pusher`). On the engines `image` is only
+    tracker can mask it (`comexp.method.observation.mask_pusher`). On the engines `image` is only
     the window around the object (`object_window_px`); its camera model says where it lies.
     """
 
@@ -96,31 +130,6 @@ class Frame:
     t_s: float  # since the start of the push
     pusher_xy_m: tuple[float, float]
     pusher_radius_m: float
-
-
-def outline_radius_m(outline_m: np.ndarray) -> float:
-    """The largest distance of an outline corner from the object frame's origin."""
-    o = np.asarray(outline_m, dtype=float)
-    return float(np.sqrt(np.max(o[:, 0] * o[:, 0] + o[:, 1] * o[:, 1])))
-
-
-def surely_in_view(x_m: float, y_m: float, radius_m: float, camera: CameraModel) -> bool:
-    """True when a disc of `radius_m` about the floor point (x, y) projects well inside the
-    image, so every outline corner within it does: the protocol checks the view every few
-    steps, and this test (a few float operations) spares the exact per-corner projection
-    (numpy on a handful of points, ~100x its cost) on nearly every check. False decides
-    nothing: the exact test runs. Its margin (1e-6 px, 1e-9 relative on the radius) is far
-    above the rounding of either computation, so the verdict is always the exact test's."""
-    x0, y0, z0 = camera.position_m
-    r = radius_m * (1.0 + 1e-9) + 1e-12
-    kx, ky = camera.fx_px / z0, camera.fy_px / z0
-    margin = 1e-6
-    return (
-        camera.cx_px + (x_m - r - x0) * kx >= margin
-        and camera.cx_px + (x_m + r - x0) * kx <= camera.width_px - 1 - margin
-        and camera.cy_px - (y_m + r - y0) * ky >= margin
-        and camera.cy_px - (y_m - r - y0) * ky <= camera.height_px - 1 - margin
-    )
 
 
 def classify_state(
@@ -217,7 +226,7 @@ class Simulator(ABC):
     def _raycast_depth(self) -> DepthImage:
         """The exact ray-cast depth image of the prism at the true pose (`camera.renderer=
         raycast`): an engine's alternative to its own renderer, the same pixels as planar's."""
-        from comexp.method.perception import render_prism_depth
+        from comexp.method.rendering import render_prism_depth
 
         scene = self._scene_or_fail()
         return render_prism_depth(
@@ -262,153 +271,34 @@ class Simulator(ABC):
         calls) are the same with or without frames: watching never changes the physics. The
         rate is therefore `1 / frame_interval_s` on average, each frame up to one check
         (`check_every_steps` steps) late.
+
+        The three phases (drive, settle, retract) and the checks between chunks of steps are
+        `_PushRun`'s; this method starts the push and reports it.
         """
-        s = self.settings
-        dt = s.timestep_s
         camera = self._camera_model()
         outline = self._outline_m()
-        radius = outline_radius_m(outline)
         before = self.object_state()
         start = np.asarray(cmd.start_xy_m, dtype=float)
         direction = np.asarray(cmd.direction_xy, dtype=float)
-        max_tilt = before.tilt_deg
         if pusher_clearance_m(start, before, outline, self._pusher_radius_m()) < 0.0:
             return PushOutcome(
-                PushStatus.PATH_BLOCKED, before.pose, before.pose, 0.0, 0, False, 0.0, max_tilt
+                PushStatus.PATH_BLOCKED,
+                before.pose,
+                before.pose,
+                0.0,
+                0,
+                False,
+                0.0,
+                before.tilt_deg,
             )
         self._place_pusher(start)
-        steps = 0
-        contact = False
-        lag = 0.0
-        status: PushStatus | None = None
-        chunk = max(1, int(self.check_every_steps))
-        watch = on_frame is not None and frame_interval_s > 0
-        next_frame_s = frame_interval_s
-        n_frames = 0
-        last_yaw = before.pose.yaw_rad
-        turned = 0.0
-
-        def skip_still(targets: np.ndarray) -> int:
-            """Advance the leading steps of `targets` that cannot move the object, in whole
-            chunks, as one call; the checks they span are those of an object at rest (no
-            failure, no turn; a due frame is a still one). Returns how many were advanced."""
-            nonlocal steps, contact, next_frame_s
-            n = min(self._steps_still(targets), len(targets)) // chunk * chunk - chunk
-            if n <= 0:
-                return 0
-            pose0 = self.object_state().pose
-            touched, _ = self._advance(targets[:n])
-            after = self.object_state()
-            if touched or after.pose != pose0 or not at_rest(after, s):
-                raise RuntimeError(f"{self.name}: the object moved in steps declared still")
-            contact = contact or touched
-            for _ in range(n // chunk):
-                steps += chunk
-                t_s = steps * dt
-                if watch and t_s >= next_frame_s - 1e-9:
-                    next_frame_s = (
-                        math.floor(t_s / frame_interval_s + 1e-9) + 1
-                    ) * frame_interval_s
-                    if on_still is not None:
-                        on_still(t_s)
-            return n
-
-        def run(targets: np.ndarray, driving: bool = False) -> ObjectState:
-            nonlocal steps, contact, status, max_tilt, next_frame_s, n_frames, last_yaw, turned
-            touched, tilt = self._advance(targets)
-            steps += len(targets)
-            contact = contact or touched
-            st = self.object_state()
-            if st.is_finite:  # < half a turn between two checks (a few ms apart)
-                turned += wrap_angle(st.pose.yaw_rad - last_yaw)
-                last_yaw = st.pose.yaw_rad
-            max_tilt = max(max_tilt, tilt, st.tilt_deg if st.is_finite else 0.0)
-            status = self._engine_failure() or classify_state(st, outline, camera, s, radius)
-            t_s = steps * dt
-            if watch and status is None and t_s >= next_frame_s - 1e-9:
-                next_frame_s = (math.floor(t_s / frame_interval_s + 1e-9) + 1) * frame_interval_s
-                if at_rest(st, s):  # a still object shows nothing new: no frame
-                    if on_still is not None:
-                        on_still(t_s)
-                elif frame_wanted is None or frame_wanted(t_s, driving):
-                    xy = self._pusher_xy()
-                    frame = Frame(
-                        self.render_tracking_depth(),
-                        t_s,
-                        (float(xy[0]), float(xy[1])),
-                        self._pusher_radius_m(),
-                    )
-                    on_frame(frame)  # type: ignore[misc]
-                    n_frames += 1
-            return st
-
-        # 1) the straight path at the commanded speed; the pusher is where the path is at the
-        #    end of each step
-        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
-        travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
-        k = skip_still(start + travelled[:, None] * direction)
-        while k < n_move and status is None:
-            n = min(chunk, n_move - k)
-            travelled = np.minimum(cmd.speed_m_s * dt * np.arange(k + 1, k + n + 1), cmd.travel_m)
-            targets = start + travelled[:, None] * direction
-            run(targets, driving=True)
-            k += n
-            lag = max(lag, float(np.linalg.norm(self._pusher_xy() - targets[-1])))
-        # 2) hold the pusher still; at rest = the object frame's floor point and yaw below the
-        #    settle limits at every check for settle_hold_s
-        if status is None:
-            hold_checks = max(1, math.ceil(s.settle_hold_s / (dt * chunk) - 1e-9))
-            quiet = 0
-            held = np.repeat(start[None, :] + cmd.travel_m * direction[None, :], chunk, axis=0)
-            for _ in range(max(1, math.ceil(s.max_settle_s / (dt * chunk)))):
-                st = run(held)
-                if status is not None:
-                    break
-                if at_rest(st, s):
-                    quiet += 1
-                    left = (hold_checks - quiet) * chunk
-                    if left > 0:  # checks that would see the same still object: skipped
-                        quiet += skip_still(np.repeat(held[:1], left + chunk, axis=0)) // chunk
-                    if quiet >= hold_checks:
-                        break
-                else:
-                    quiet = 0
-            else:
-                status = PushStatus.NOT_SETTLED
-        # 3) back off along the push line until clear, then park out of view
-        if status is None:
-            end = self._pusher_xy()
-            n_back = math.ceil(s.retract_m / (s.retract_speed_m_s * dt))
-            back = np.minimum(s.retract_speed_m_s * dt * np.arange(1, n_back + 1), s.retract_m)
-            i = 0
-            while i < n_back:
-                run(end - back[i : i + chunk, None] * direction)
-                i += chunk
-                if status is not None:
-                    break
-                i += skip_still(end - back[i:, None] * direction)
-        after = self.object_state()
-        if after.is_finite:
-            turned += wrap_angle(after.pose.yaw_rad - last_yaw)
-        if status is None or status is PushStatus.NOT_SETTLED:
-            status = classify_state(after, outline, camera, s, radius) or status
-        if pusher_clearance_m(self._pusher_xy(), after, outline, self._pusher_radius_m()) > (
-            s.clear_m
-        ):
-            self._place_pusher(self._park_xy())
-        max_tilt = max(max_tilt, after.tilt_deg) if after.is_finite else max_tilt
-        return PushOutcome(
-            status=status or PushStatus.OK,
-            pose_before=before.pose,
-            pose_after=after.pose if after.is_finite else before.pose,
-            sim_time_s=steps * dt,
-            steps=steps,
-            contact_made=contact,
-            max_pusher_lag_m=lag,
-            max_tilt_deg=max_tilt,
-            n_frames=n_frames,
-            true_rotation_deg=math.degrees(turned),
+        run = _PushRun(
+            self, camera, outline, before, on_frame, frame_interval_s, on_still, frame_wanted
         )
+        run.drive(cmd, start, direction)
+        run.settle(cmd, start, direction)
+        run.retract(direction)
+        return run.finish(before)
 
     # the scene the protocol needs (every backend keeps the SceneSpec it built)
     def _scene_or_fail(self) -> SceneSpec:
@@ -453,62 +343,6 @@ class Simulator(ABC):
         self.close()
 
 
-def object_window_px(
-    camera: CameraModel,
-    outline_m: np.ndarray,
-    height_m: float,
-    state: ObjectState,
-    margin_px: int = 2,
-) -> tuple[int, int, int, int] | None:
-    """The window (u0, v0, width, height) of the image that holds every pixel the object can
-    cover, `margin_px` wider each side, clipped to the image; None when it is off the image.
-
-    Why it is enough: the object is a union of convex prisms, so its image lies inside the
-    convex hull of the projections of its 2 n corners (bottom and top outline), placed by the
-    full 3-D state (tilted or lifted objects included). Tracking frames need only this window
-    (`Simulator.render_tracking_depth`): the pusher is masked away anyway.
-    """
-    outline = np.asarray(outline_m, dtype=float)
-    n = len(outline)
-    local = np.zeros((2 * n, 3))
-    local[:, :2] = np.concatenate([outline, outline])
-    local[n:, 2] = height_m
-    cr, sr = math.cos(state.roll_rad), math.sin(state.roll_rad)
-    cp, sp = math.cos(state.pitch_rad), math.sin(state.pitch_rad)
-    cy, sy = math.cos(state.yaw_rad), math.sin(state.yaw_rad)
-    rot = np.array(  # ZYX: R = Rz(yaw) Ry(pitch) Rx(roll), the engines' convention
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-    world = local @ rot.T + np.asarray(state.position_m, dtype=float)
-    uv = camera.world_to_pixel(world[:, 0], world[:, 1], world[:, 2])
-    u0 = max(int(np.floor(uv[:, 0].min())) - margin_px, 0)
-    u1 = min(int(np.ceil(uv[:, 0].max())) + margin_px, camera.width_px - 1)
-    v0 = max(int(np.floor(uv[:, 1].min())) - margin_px, 0)
-    v1 = min(int(np.ceil(uv[:, 1].max())) + margin_px, camera.height_px - 1)
-    if u1 < u0 or v1 < v0:
-        return None
-    return u0, v0, u1 - u0 + 1, v1 - v0 + 1
-
-
-def crop_camera(
-    camera: CameraModel, u0: int, v0: int, width_px: int, height_px: int
-) -> CameraModel:
-    """The camera model of the window of `camera`'s image whose top-left pixel is (u0, v0):
-    the same camera (pose, focal lengths), the principal point moved by the offset, so that
-    pixel (u, v) of the window back-projects to the world point of pixel (u0 + u, v0 + v)."""
-    return replace(
-        camera,
-        width_px=width_px,
-        height_px=height_px,
-        cx_px=camera.cx_px - u0,
-        cy_px=camera.cy_px - v0,
-    )
-
-
 def at_rest(state: ObjectState, s: SimSettings) -> bool:
     """The one settle rule: what the camera and the estimator see is at rest, i.e. the object
     frame's origin (a point of the bottom face) moves slower than `settle_speed_m_s` across
@@ -525,93 +359,187 @@ def at_rest(state: ObjectState, s: SimSettings) -> bool:
     )
 
 
-def point_polygon_distance(pt: np.ndarray, poly: np.ndarray) -> float:
-    """Signed distance from a point to a simple polygon's boundary (negative inside)."""
-    a = poly
-    ab = np.roll(poly, -1, axis=0) - a
-    t = np.clip(np.einsum("ij,ij->i", pt - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-    d = float(np.min(np.hypot(*(a + t[:, None] * ab - pt).T)))
-    crosses = (a[:, 1] > pt[1]) != (np.roll(a[:, 1], -1) > pt[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = a[:, 0] + (pt[1] - a[:, 1]) * ab[:, 0] / ab[:, 1]
-    inside = int(np.sum(crosses & (pt[0] < x_at))) % 2 == 1
-    return -d if inside else d
+class _PushRun:
+    """One push under way (`Simulator.push`): the protocol's three phases and its checks.
 
+    The pusher advances in chunks of `check_every_steps` steps; after each chunk the object's
+    state is checked (failures, the turn so far, the settle rule) and, when due, a tracking
+    frame is taken. Steps that provably cannot move the object are advanced without checks
+    (`skip_still`). The counters (steps, contact, turn, tilt, frames) become the outcome.
+    """
 
-def pusher_contact_height_m(pusher: PusherSpec, object_height_m: float) -> float:
-    """Height of the resultant of the pusher's line contact with an object's vertical side:
-    the middle of their overlap (the pusher spans clearance .. clearance + length)."""
-    top = min(object_height_m, pusher.clearance_m + pusher.length_m)
-    return 0.5 * (pusher.clearance_m + top)
+    def __init__(
+        self,
+        sim: Simulator,
+        camera: CameraModel,
+        outline: np.ndarray,
+        before: ObjectState,
+        on_frame: Callable[[Frame], None] | None,
+        frame_interval_s: float,
+        on_still: Callable[[float], None] | None,
+        frame_wanted: Callable[[float, bool], bool] | None,
+    ) -> None:
+        self.sim = sim
+        self.s = sim.settings
+        self.dt = self.s.timestep_s
+        self.camera = camera
+        self.outline = outline
+        self.radius = outline_radius_m(outline)
+        self.on_frame = on_frame
+        self.frame_interval_s = frame_interval_s
+        self.on_still = on_still
+        self.frame_wanted = frame_wanted
+        self.max_tilt = before.tilt_deg
+        self.steps = 0
+        self.contact = False
+        self.lag = 0.0
+        self.status: PushStatus | None = None
+        self.chunk = max(1, int(sim.check_every_steps))
+        self.watch = on_frame is not None and frame_interval_s > 0
+        self.next_frame_s = frame_interval_s
+        self.n_frames = 0
+        self.last_yaw = before.pose.yaw_rad
+        self.turned = 0.0
 
+    def _frame_due(self, t_s: float) -> bool:
+        """A frame is due at `t_s`: if so, the next one is due a frame interval later."""
+        if not (self.watch and t_s >= self.next_frame_s - 1e-9):
+            return False
+        fi = self.frame_interval_s
+        self.next_frame_s = (math.floor(t_s / fi + 1e-9) + 1) * fi
+        return True
 
-def pusher_clearance_m(
-    xy: np.ndarray | Sequence[float], state: ObjectState, outline_m: np.ndarray, radius_m: float
-) -> float:
-    """Gap between the pusher's surface and the object's footprint (negative = overlap)."""
-    poly = state.pose.to_world(outline_m)
-    return point_polygon_distance(np.asarray(xy, dtype=float), poly) - radius_m
+    def skip_still(self, targets: np.ndarray) -> int:
+        """Advance the leading steps of `targets` that cannot move the object, in whole
+        chunks, as one call; the checks they span are those of an object at rest (no
+        failure, no turn; a due frame is a still one). Returns how many were advanced."""
+        sim, s, chunk = self.sim, self.s, self.chunk
+        n = min(sim._steps_still(targets), len(targets)) // chunk * chunk - chunk
+        if n <= 0:
+            return 0
+        pose0 = sim.object_state().pose
+        touched, _ = sim._advance(targets[:n])
+        after = sim.object_state()
+        if touched or after.pose != pose0 or not at_rest(after, s):
+            raise RuntimeError(f"{sim.name}: the object moved in steps declared still")
+        self.contact = self.contact or touched
+        for _ in range(n // chunk):
+            self.steps += chunk
+            t_s = self.steps * self.dt
+            if self._frame_due(t_s) and self.on_still is not None:
+                self.on_still(t_s)
+        return n
 
+    def run(self, targets: np.ndarray, driving: bool = False) -> ObjectState:
+        """Advance one chunk of steps, then check: failures, turn, tilt, a due frame."""
+        sim, s = self.sim, self.s
+        touched, tilt = sim._advance(targets)
+        self.steps += len(targets)
+        self.contact = self.contact or touched
+        st = sim.object_state()
+        if st.is_finite:  # < half a turn between two checks (a few ms apart)
+            self.turned += wrap_angle(st.pose.yaw_rad - self.last_yaw)
+            self.last_yaw = st.pose.yaw_rad
+        self.max_tilt = max(self.max_tilt, tilt, st.tilt_deg if st.is_finite else 0.0)
+        self.status = sim._engine_failure() or classify_state(
+            st, self.outline, self.camera, s, self.radius
+        )
+        t_s = self.steps * self.dt
+        if self.status is None and self._frame_due(t_s):
+            if at_rest(st, s):  # a still object shows nothing new: no frame
+                if self.on_still is not None:
+                    self.on_still(t_s)
+            elif self.frame_wanted is None or self.frame_wanted(t_s, driving):
+                xy = sim._pusher_xy()
+                frame = Frame(
+                    sim.render_tracking_depth(),
+                    t_s,
+                    (float(xy[0]), float(xy[1])),
+                    sim._pusher_radius_m(),
+                )
+                self.on_frame(frame)  # type: ignore[misc]
+                self.n_frames += 1
+        return st
 
-def physics_identity(
-    name: str, settings: SimSettings | None = None, options: dict | None = None
-) -> str:
-    """What determines an episode's physics on backend `name`, as one short string: the
-    backend's model revision (`PHYSICS_VERSION` in its module, bumped by any change that
-    changes results), the engine's version, and a hash of the backend's settings and of the
-    push protocol's. It is part of every episode's identity (`EpisodeSpec.physics`), so a
-    database is never resumed across physics versions and no report pools two of them."""
-    import hashlib
-    from importlib import metadata
+    def drive(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
+        """1) The straight path at the commanded speed; the pusher is where the path is at
+        the end of each step."""
+        dt, chunk = self.dt, self.chunk
+        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
+        travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
+        k = self.skip_still(start + travelled[:, None] * direction)
+        while k < n_move and self.status is None:
+            n = min(chunk, n_move - k)
+            travelled = np.minimum(cmd.speed_m_s * dt * np.arange(k + 1, k + n + 1), cmd.travel_m)
+            targets = start + travelled[:, None] * direction
+            self.run(targets, driving=True)
+            k += n
+            self.lag = max(self.lag, float(np.linalg.norm(self.sim._pusher_xy() - targets[-1])))
 
-    try:
-        module_name = BACKENDS[name].split(":")[0]
-    except KeyError:
-        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
-    module = importlib.import_module(module_name)
-    engine = getattr(module, "ENGINE_DISTRIBUTION", None)
-    engine_v = metadata.version(engine) if engine else "none"
-    # the engine's own renderer is what every row had before `camera.renderer` existed: it is
-    # left out, so that those rows keep their identity
-    opts = {k: v for k, v in (options or {}).items() if (k, v) != ("renderer", "engine")}
-    text = repr((module.PHYSICS_SETTINGS, settings or SimSettings(), sorted(opts.items())))
-    digest = hashlib.sha256(text.encode()).hexdigest()[:10]
-    return f"{name}/{module.PHYSICS_VERSION}/{engine or 'numpy'}-{engine_v}/{digest}"
+    def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
+        """2) Hold the pusher still; at rest = the object frame's floor point and yaw below
+        the settle limits at every check for settle_hold_s."""
+        if self.status is not None:
+            return
+        s, dt, chunk = self.s, self.dt, self.chunk
+        hold_checks = max(1, math.ceil(s.settle_hold_s / (dt * chunk) - 1e-9))
+        quiet = 0
+        held = np.repeat(start[None, :] + cmd.travel_m * direction[None, :], chunk, axis=0)
+        for _ in range(max(1, math.ceil(s.max_settle_s / (dt * chunk)))):
+            st = self.run(held)
+            if self.status is not None:
+                return
+            if at_rest(st, s):
+                quiet += 1
+                left = (hold_checks - quiet) * chunk
+                if left > 0:  # checks that would see the same still object: skipped
+                    quiet += self.skip_still(np.repeat(held[:1], left + chunk, axis=0)) // chunk
+                if quiet >= hold_checks:
+                    return
+            else:
+                quiet = 0
+        self.status = PushStatus.NOT_SETTLED
 
+    def retract(self, direction: np.ndarray) -> None:
+        """3) Back off along the push line until clear (parking is `finish`'s)."""
+        if self.status is not None:
+            return
+        s, dt, chunk = self.s, self.dt, self.chunk
+        end = self.sim._pusher_xy()
+        n_back = math.ceil(s.retract_m / (s.retract_speed_m_s * dt))
+        back = np.minimum(s.retract_speed_m_s * dt * np.arange(1, n_back + 1), s.retract_m)
+        i = 0
+        while i < n_back:
+            self.run(end - back[i : i + chunk, None] * direction)
+            i += chunk
+            if self.status is not None:
+                break
+            i += self.skip_still(end - back[i:, None] * direction)
 
-def backend_names() -> list[str]:
-    return sorted(BACKENDS)
-
-
-def make_simulator(name: str, settings: SimSettings | None = None, **options) -> Simulator:
-    """Create a backend by name (`planar`, `pybullet`, `mujoco`); engines are imported lazily.
-    `options` are the backend's own (e.g. `floor_friction` for the engines)."""
-    try:
-        target = BACKENDS[name]
-    except KeyError:
-        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
-    module_name, cls_name = target.split(":")
-    cls = getattr(importlib.import_module(module_name), cls_name)
-    return cls(settings, **options)
-
-
-def contact_push(
-    contact_xy_m: tuple[float, float] | np.ndarray,
-    inward_normal_xy: tuple[float, float] | np.ndarray,
-    push_length_m: float,
-    speed_m_s: float,
-    pusher_radius_m: float,
-    approach_gap_m: float = 0.01,
-) -> PushCommand:
-    """The push that drives the pusher's surface `push_length_m` past a contact point along
-    the inward normal, starting `approach_gap_m` clear of it (world frame)."""
-    n = np.asarray(inward_normal_xy, dtype=float)
-    n = n / np.linalg.norm(n)
-    c = np.asarray(contact_xy_m, dtype=float)
-    start = c - n * (pusher_radius_m + approach_gap_m)
-    return PushCommand(
-        start_xy_m=(float(start[0]), float(start[1])),
-        direction_xy=(float(n[0]), float(n[1])),
-        travel_m=approach_gap_m + push_length_m,
-        speed_m_s=speed_m_s,
-    )
+    def finish(self, before: ObjectState) -> PushOutcome:
+        """Classify the state at rest, park the pusher out of view once clear, report."""
+        sim, s = self.sim, self.s
+        after = sim.object_state()
+        if after.is_finite:
+            self.turned += wrap_angle(after.pose.yaw_rad - self.last_yaw)
+        status = self.status
+        if status is None or status is PushStatus.NOT_SETTLED:
+            status = classify_state(after, self.outline, self.camera, s, self.radius) or status
+        clearance = pusher_clearance_m(
+            sim._pusher_xy(), after, self.outline, sim._pusher_radius_m()
+        )
+        if clearance > s.clear_m:
+            sim._place_pusher(sim._park_xy())
+        max_tilt = max(self.max_tilt, after.tilt_deg) if after.is_finite else self.max_tilt
+        return PushOutcome(
+            status=status or PushStatus.OK,
+            pose_before=before.pose,
+            pose_after=after.pose if after.is_finite else before.pose,
+            sim_time_s=self.steps * self.dt,
+            steps=self.steps,
+            contact_made=self.contact,
+            max_pusher_lag_m=self.lag,
+            max_tilt_deg=max_tilt,
+            n_frames=self.n_frames,
+            true_rotation_deg=math.degrees(self.turned),
+        )
