@@ -56,8 +56,8 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
     push_steps,
     pusher_touching,
 )
+from comexp.experiment.interface import PushStatus, Simulator  # noqa: E402
 from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES  # noqa: E402
-from comexp.experiment.simulator import PushStatus, Simulator  # noqa: E402
 from comexp.experiment.view import crop_camera, object_window_px  # noqa: E402
 from comexp.method.scene import (  # noqa: E402
     GRAVITY_M_S2,

@@ -50,7 +50,7 @@ from comexp.backends.floor_friction import (
     set_cop_kernel,
 )
 from comexp.experiment.contact import point_polygon_distance
-from comexp.experiment.simulator import Simulator
+from comexp.experiment.interface import Simulator
 from comexp.method.rendering import render_prism_depth
 from comexp.method.scene import (
     GRAVITY_M_S2,

@@ -38,8 +38,8 @@ import numpy as np
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
 from comexp.experiment.contact import pusher_contact_height_m
+from comexp.experiment.interface import PARK_XY_M, Simulator
 from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES
-from comexp.experiment.simulator import PARK_XY_M, Simulator
 from comexp.experiment.view import crop_camera, object_window_px
 from comexp.method.scene import (
     GRAVITY_M_S2,

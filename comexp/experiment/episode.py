@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from comexp.experiment.simulator import Frame, PushOutcome, Simulator
+from comexp.experiment.interface import Frame, PushOutcome, Simulator
 from comexp.experiment.task import (
     EpisodeResult,
     EpisodeSpec,

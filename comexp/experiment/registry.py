@@ -2,7 +2,7 @@
 
 `make_simulator(name, ...)` imports a backend's module only when it is asked for (the engines
 are heavy); `physics_identity(name, ...)` names what determines its results, part of every
-episode's identity. The interface every backend implements is `comexp.experiment.simulator`'s.
+episode's identity. The interface every backend implements is `comexp.experiment.interface`'s.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from comexp.method.scene import SimSettings
 
 if TYPE_CHECKING:
-    from comexp.experiment.simulator import Simulator
+    from comexp.experiment.interface import Simulator
 
 BACKENDS: dict[str, str] = {
     "planar": "comexp.backends.planar_sim:PlanarSimulator",

@@ -1,7 +1,7 @@
 """What the camera sees of the object: sure-in-view tests, the image window it can cover.
 
 Geometry of the top-down camera and the object's outline, shared by the push protocol
-(`comexp.experiment.simulator`: the object leaving the view is a failure) and the engines
+(`comexp.experiment.interface`: the object leaving the view is a failure) and the engines
 (tracking frames render only the window the object can cover).
 """
 
