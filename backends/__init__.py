@@ -1,1 +1,1 @@
-"""Simulator backends (one module per engine) behind comexp.experiment.simulator.Simulator."""
+"""Simulator backends (one module per engine) behind comexp.experiment.interface.Simulator."""

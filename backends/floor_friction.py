@@ -28,7 +28,7 @@ import numpy as np
 import shapely
 from numba import njit
 
-from comexp.experiment.simulator import pusher_contact_height_m
+from comexp.experiment.contact import pusher_contact_height_m
 from comexp.method.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
 
 

@@ -56,17 +56,14 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
     push_steps,
     pusher_touching,
 )
-from comexp.experiment.simulator import (  # noqa: E402
-    FLOOR_FRICTION_CHOICES,
-    RENDERER_CHOICES,
-    PushStatus,
-    Simulator,
-    crop_camera,
-    object_window_px,
-)
+from comexp.experiment.interface import PushStatus, Simulator  # noqa: E402
+from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES  # noqa: E402
+from comexp.experiment.view import crop_camera, object_window_px  # noqa: E402
 from comexp.method.scene import (  # noqa: E402
     GRAVITY_M_S2,
     DepthImage,
+    FloorSpec,
+    ObjectSpec,
     ObjectState,
     SceneSpec,
     SimSettings,
@@ -178,62 +175,10 @@ def scene_mjcf(
     """The MJCF of a scene. Deterministic text: equal scenes give equal strings (cache key)."""
     obj, floor, pusher, cam = scene.obj, scene.floor, scene.pusher, scene.camera
     h = obj.height_m
-    assets, obj_geoms = [], []
-    for i, part in enumerate(obj.convex_parts_m):
-        rect = _axis_aligned_rect(part) if contact.use_box_geoms else None
-        if rect is not None:
-            cx, cy, hx, hy = rect
-            obj_geoms.append(
-                f'<geom name="obj{i}" type="box" size="{_fmt(hx, hy, h / 2)}" '
-                f'pos="{_fmt(cx, cy, h / 2)}" rgba="0.8 0.3 0.2 1"/>'
-            )
-        else:
-            verts = [(x, y, z) for z in (0.0, h) for x, y in part]
-            vtxt = " ".join(_fmt(*v) for v in verts)
-            assets.append(f'<mesh name="part{i}" vertex="{vtxt}"/>')
-            obj_geoms.append(
-                f'<geom name="obj{i}" type="mesh" mesh="part{i}" rgba="0.8 0.3 0.2 1"/>'
-            )
-    n_parts = len(obj.convex_parts_m)
-    core, rim = (
-        _support_points(obj.outline_m, obj.com_m, contact)
-        if contact.support_spacing_m > 0
-        else ([], [])
-    )
-    r_sup = contact.support_radius_m
-    zc = r_sup + contact.floor_margin_m  # hovers `floor_margin_m` up: object frame at z = 0
-    supports = [(x, y, zc) for x, y in core] + [(x, y, r_sup + contact.rim_lift_m) for x, y in rim]
-    for j, (x, y, z) in enumerate(supports):
-        obj_geoms.append(
-            f'<geom name="sup{j}" type="sphere" size="{r_sup!r}" pos="{_fmt(x, y, z)}" '
-            f'group="3" rgba="0 0 0 0"/>'
-        )
-    solref, solimp = _fmt(*contact.solref), _fmt(*contact.solimp)
-    sref = f'solref="{solref}" solimp="{solimp}" solreffriction="{_fmt(*contact.solreffriction)}"'
-    pairs = []
-    floor_geoms = [f"sup{j}" for j in range(len(supports))] or [f"obj{i}" for i in range(n_parts)]
-    n_core = len(core) if supports else len(floor_geoms)
-    for j, g in enumerate(floor_geoms):
-        # first tangent of a horizontal floor contact = world y, second = world x (see header);
-        # rim supports are frictionless (condim 1): they only stop a tilting object from
-        # sinking, and friction there would undo the core's symmetry whenever they touch
-        condim = 3 if j < n_core or not contact.rim_frictionless else 1
-        if floor_friction == "model":
-            condim = 1  # normal support only: the footprint model supplies the friction
-        margin = f'margin="{contact.floor_margin_m!r}" ' if j < n_core else ""
-        pairs.append(
-            f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}'
-            f'friction="{_fmt(floor.mu_y, floor.mu_x, 0.0, 0.0, 0.0)}" {sref}/>'
-        )
-    psref = sref
-    if contact.pusher_solref is not None:
-        psref = sref.replace(f'solref="{solref}"', f'solref="{_fmt(*contact.pusher_solref)}"')
-    for i in range(n_parts):
-        pairs.append(
-            f'<pair name="pusher{i}" geom1="pusher" geom2="obj{i}" condim="3" '
-            f'friction="{_fmt(obj.mu_pusher, obj.mu_pusher, 0.0, 0.0, 0.0)}" '
-            f"{psref}/>"
-        )
+    assets, obj_geoms = _object_geoms(obj, contact)
+    supports, n_core = _support_geoms(obj, contact)
+    obj_geoms += supports
+    pairs = _contact_pairs(obj, floor, contact, floor_friction, len(supports), n_core)
     ix, iy, iz = obj.ixx_kg_m2, obj.iyy_kg_m2, obj.izz_kg_m2
     half = floor.size_m / 2.0
     pz = pusher.clearance_m + pusher.length_m / 2.0
@@ -286,6 +231,88 @@ def scene_mjcf(
   {PUSHER_SENSOR_MJCF}
 </mujoco>
 """
+
+
+def _object_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[list[str], list[str]]:
+    """The object's mesh assets and its geoms: a box for an axis-aligned rectangle part (when
+    `use_box_geoms`), else the part's prism as a mesh."""
+    h = obj.height_m
+    assets, obj_geoms = [], []
+    for i, part in enumerate(obj.convex_parts_m):
+        rect = _axis_aligned_rect(part) if contact.use_box_geoms else None
+        if rect is not None:
+            cx, cy, hx, hy = rect
+            obj_geoms.append(
+                f'<geom name="obj{i}" type="box" size="{_fmt(hx, hy, h / 2)}" '
+                f'pos="{_fmt(cx, cy, h / 2)}" rgba="0.8 0.3 0.2 1"/>'
+            )
+        else:
+            verts = [(x, y, z) for z in (0.0, h) for x, y in part]
+            vtxt = " ".join(_fmt(*v) for v in verts)
+            assets.append(f'<mesh name="part{i}" vertex="{vtxt}"/>')
+            obj_geoms.append(
+                f'<geom name="obj{i}" type="mesh" mesh="part{i}" rgba="0.8 0.3 0.2 1"/>'
+            )
+    return assets, obj_geoms
+
+
+def _support_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[list[str], int]:
+    """The object's floor supports as invisible sphere geoms (`_support_points`: the core,
+    then the rim) and how many of them are the core's."""
+    core, rim = (
+        _support_points(obj.outline_m, obj.com_m, contact)
+        if contact.support_spacing_m > 0
+        else ([], [])
+    )
+    r_sup = contact.support_radius_m
+    zc = r_sup + contact.floor_margin_m  # hovers `floor_margin_m` up: object frame at z = 0
+    supports = [(x, y, zc) for x, y in core] + [(x, y, r_sup + contact.rim_lift_m) for x, y in rim]
+    geoms = [
+        f'<geom name="sup{j}" type="sphere" size="{r_sup!r}" pos="{_fmt(x, y, z)}" '
+        f'group="3" rgba="0 0 0 0"/>'
+        for j, (x, y, z) in enumerate(supports)
+    ]
+    return geoms, len(core)
+
+
+def _contact_pairs(
+    obj: ObjectSpec,
+    floor: FloorSpec,
+    contact: MujocoContactSettings,
+    floor_friction: str,
+    n_supports: int,
+    n_core: int,
+) -> list[str]:
+    """The explicit contact pairs: floor with each support (or each object part when there
+    are no supports), and pusher with each object part, at exactly the configured friction."""
+    n_parts = len(obj.convex_parts_m)
+    solref, solimp = _fmt(*contact.solref), _fmt(*contact.solimp)
+    sref = f'solref="{solref}" solimp="{solimp}" solreffriction="{_fmt(*contact.solreffriction)}"'
+    pairs = []
+    floor_geoms = [f"sup{j}" for j in range(n_supports)] or [f"obj{i}" for i in range(n_parts)]
+    n_core = n_core if n_supports else len(floor_geoms)
+    for j, g in enumerate(floor_geoms):
+        # first tangent of a horizontal floor contact = world y, second = world x (see header);
+        # rim supports are frictionless (condim 1): they only stop a tilting object from
+        # sinking, and friction there would undo the core's symmetry whenever they touch
+        condim = 3 if j < n_core or not contact.rim_frictionless else 1
+        if floor_friction == "model":
+            condim = 1  # normal support only: the footprint model supplies the friction
+        margin = f'margin="{contact.floor_margin_m!r}" ' if j < n_core else ""
+        pairs.append(
+            f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}'
+            f'friction="{_fmt(floor.mu_y, floor.mu_x, 0.0, 0.0, 0.0)}" {sref}/>'
+        )
+    psref = sref
+    if contact.pusher_solref is not None:
+        psref = sref.replace(f'solref="{solref}"', f'solref="{_fmt(*contact.pusher_solref)}"')
+    for i in range(n_parts):
+        pairs.append(
+            f'<pair name="pusher{i}" geom1="pusher" geom2="obj{i}" condim="3" '
+            f'friction="{_fmt(obj.mu_pusher, obj.mu_pusher, 0.0, 0.0, 0.0)}" '
+            f"{psref}/>"
+        )
+    return pairs
 
 
 def _support_points(

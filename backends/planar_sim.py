@@ -49,8 +49,9 @@ from comexp.backends.floor_friction import (
     offsets_kernel,
     set_cop_kernel,
 )
-from comexp.experiment.simulator import Simulator, point_polygon_distance
-from comexp.method.perception import render_prism_depth
+from comexp.experiment.contact import point_polygon_distance
+from comexp.experiment.interface import Simulator
+from comexp.method.rendering import render_prism_depth
 from comexp.method.scene import (
     GRAVITY_M_S2,
     DepthImage,

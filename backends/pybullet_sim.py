@@ -37,20 +37,18 @@ from collections.abc import Sequence
 import numpy as np
 
 from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
-from comexp.experiment.simulator import (
-    FLOOR_FRICTION_CHOICES,
-    PARK_XY_M,
-    RENDERER_CHOICES,
-    Simulator,
-    crop_camera,
-    object_window_px,
-    pusher_contact_height_m,
-)
+from comexp.experiment.contact import pusher_contact_height_m
+from comexp.experiment.interface import PARK_XY_M, Simulator
+from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES
+from comexp.experiment.view import crop_camera, object_window_px
 from comexp.method.scene import (
     GRAVITY_M_S2,
+    CameraSpec,
     DepthImage,
+    FloorSpec,
     ObjectSpec,
     ObjectState,
+    Pose2D,
     SceneSpec,
     SimSettings,
     tilt_deg,
@@ -269,7 +267,8 @@ class PybulletSimulator(Simulator):
 
         A full reset (rather than keeping floor and pusher) is what makes repeated builds
         bit-identical: no solver warm-start, contact cache or body-id order survives; it costs
-        about a millisecond (docs/physics_pybullet.md).
+        about a millisecond (docs/physics_pybullet.md). The bodies are loaded in this order
+        (floor, pusher, object): body ids, hence the engine's results, depend on it.
         """
         c = self._cid
         s = self.settings
@@ -285,7 +284,22 @@ class PybulletSimulator(Simulator):
             physicsClientId=c,
         )
         flags = pb.URDF_INITIALIZE_SAT_FEATURES | pb.URDF_USE_INERTIA_FROM_FILE
+        self._load_floor(scene.floor, flags)
+        self._load_pusher(scene, flags)
+        self._load_object(scene.obj, scene.initial_pose, flags)
+        self._scene = scene
+        self._pushed = False
         fl = scene.floor
+        self._fric = (
+            FootprintFriction(scene.obj, fl.mu_x, fl.mu_y, scene.pusher)
+            if self.floor_friction == "model"
+            else None
+        )
+        self._set_camera(scene.camera)
+
+    def _load_floor(self, fl: FloorSpec, flags: int) -> None:
+        """The floor box and its friction (none with the footprint model: it supplies it)."""
+        c = self._cid
         floor_path = self._hashed_file("floor", "urdf", _floor_urdf(fl.size_m, fl.thickness_m))
         # Isotropic floor: a rigid body, so that the floor-object contact goes through the
         # rigid-body solver, whose first friction direction follows each point's slip velocity
@@ -317,6 +331,9 @@ class PybulletSimulator(Simulator):
             **floor_dyn,
         )
 
+    def _load_pusher(self, scene: SceneSpec, flags: int) -> None:
+        """The pusher at its contact height, parked; it never touches the floor."""
+        c = self._cid
         pu = scene.pusher
         self._pusher_z = pusher_contact_height_m(pu, scene.obj.height_m)
         pusher_path = self._hashed_file(
@@ -344,9 +361,10 @@ class PybulletSimulator(Simulator):
         pb.setCollisionFilterPair(self._pusher, self._floor, -1, -1, 0, physicsClientId=c)
         self._teleport_pusher(PARK_XY_M)
 
-        obj = scene.obj
+    def _load_object(self, obj: ObjectSpec, pose: Pose2D, flags: int) -> None:
+        """The object at its initial pose, resting on the floor."""
+        c = self._cid
         self._com_local = np.array([obj.com_m[0], obj.com_m[1], obj.height_m / 2.0])
-        pose = scene.initial_pose
         self._object = pb.loadURDF(
             self._object_urdf_path(obj),
             basePosition=[pose.x_m, pose.y_m, 0.0],
@@ -367,14 +385,10 @@ class PybulletSimulator(Simulator):
             activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING,
             physicsClientId=c,
         )
-        self._scene = scene
-        self._pushed = False
-        self._fric = (
-            FootprintFriction(obj, fl.mu_x, fl.mu_y, scene.pusher)
-            if self.floor_friction == "model"
-            else None
-        )
-        cam = scene.camera
+
+    def _set_camera(self, cam: CameraSpec) -> None:
+        """The top-down camera's view and projection matrices."""
+        c = self._cid
         self._view = pb.computeViewMatrix(
             cameraEyePosition=[0.0, 0.0, cam.height_m],
             cameraTargetPosition=[0.0, 0.0, 0.0],

@@ -2,8 +2,10 @@
 
 The package is laid out by concern, in the order data flows through it:
 
-- `comexp.experiment`: config -> objects -> grid -> episode -> simulator interface;
-- `comexp.method`: scene (frames, units), geometry, perception, estimator;
+- `comexp.experiment`: config -> objects -> grid -> task and episode loop -> simulator
+  interface (registry, view and contact geometry beside it);
+- `comexp.method`: scene (frames, units), geometry, perception (observation, tracking,
+  rendering), estimator;
 - `comexp.backends`: the simulators (planar reference, pybullet, MuJoCo);
 - `comexp.workers`: Ray actors that run episodes;
 - `comexp.results`: store (database), reports, plots, the notebook API;

@@ -1,47 +1,4 @@
 """Re-exports `comexp.experiment.simulator`: the simulator interface, push protocol."""
 
-from comexp.experiment.simulator import (
-    BACKENDS,
-    FLOOR_FRICTION_CHOICES,
-    PARK_XY_M,
-    Frame,
-    PushOutcome,
-    PushStatus,
-    Simulator,
-    at_rest,
-    backend_names,
-    classify_state,
-    contact_push,
-    crop_camera,
-    make_simulator,
-    object_window_px,
-    outline_radius_m,
-    physics_identity,
-    point_polygon_distance,
-    pusher_clearance_m,
-    pusher_contact_height_m,
-    surely_in_view,
-)
-
-__all__ = [
-    "BACKENDS",
-    "FLOOR_FRICTION_CHOICES",
-    "Frame",
-    "PARK_XY_M",
-    "PushOutcome",
-    "PushStatus",
-    "Simulator",
-    "at_rest",
-    "backend_names",
-    "classify_state",
-    "contact_push",
-    "crop_camera",
-    "make_simulator",
-    "object_window_px",
-    "outline_radius_m",
-    "physics_identity",
-    "point_polygon_distance",
-    "pusher_clearance_m",
-    "pusher_contact_height_m",
-    "surely_in_view",
-]
+from comexp.experiment.simulator import *  # noqa: F403 - the very names of its __all__
+from comexp.experiment.simulator import __all__  # noqa: F401

@@ -536,7 +536,7 @@ def test_leaving_the_view_is_reported(sim):
 def test_the_view_shortcut_changes_no_outcome(sim, monkeypatch):
     """`surely_in_view` only spares the exact check: the same pushes (one of them leaving the
     view) give the same outcomes, to the bit, with it switched off."""
-    from comexp.experiment import simulator as simulator_mod
+    from comexp.experiment import interface as simulator_mod
 
     def pushes():
         outs = []

@@ -13,7 +13,7 @@ import shapely
 from comexp.experiment.episode import EpisodeSpec, EstimatorSettings, build_scene, run_episode
 from comexp.experiment.simulator import Frame, PushOutcome, PushStatus, Simulator, make_simulator
 from comexp.method.estimator import cross2
-from comexp.method.perception import render_prism_depth
+from comexp.method.rendering import render_prism_depth
 from comexp.method.scene import DepthImage, ObjectState, Pose2D, PushCommand, SceneSpec
 
 BOX_CM = ((-4.0, -2.5), (4.0, -2.5), (4.0, 2.5), (-4.0, 2.5))

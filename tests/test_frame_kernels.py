@@ -14,21 +14,18 @@ import pytest
 
 from comexp.experiment.objects import load_objects
 from comexp.method.geometry import centroid as polygon_centroid
-from comexp.method.perception import (
+from comexp.method.observation import (
     MIN_HEIGHT_M,
     PerceptionError,
-    PoseTracker,
     TrackingView,
-    _icp_kernel,
-    _prism_kernel,
     floor_depth_m,
     mask_pusher,
     observe_boundary,
     perceive_first,
-    render_prism_depth,
-    render_prism_depth_numpy,
 )
+from comexp.method.rendering import _prism_kernel, render_prism_depth, render_prism_depth_numpy
 from comexp.method.scene import CameraSpec, DepthImage, Pose2D
+from comexp.method.tracking import PoseTracker, _icp_kernel
 
 CAM = CameraSpec().model()
 OBJECTS = load_objects()

@@ -4,6 +4,7 @@ hook), the entry points and the config tree where pyproject says."""
 
 from __future__ import annotations
 
+import ast
 import importlib
 import importlib.util
 import re
@@ -18,8 +19,27 @@ import comexp
 
 ROOT = Path(__file__).resolve().parents[1]
 ROOMS = {
-    "method": {"estimator", "geometry", "perception", "scene"},
-    "experiment": {"config", "episode", "grid", "objects", "simulator"},
+    "method": {
+        "estimator",
+        "geometry",
+        "observation",
+        "perception",
+        "rendering",
+        "scene",
+        "tracking",
+    },
+    "experiment": {
+        "config",
+        "contact",
+        "episode",
+        "grid",
+        "interface",
+        "objects",
+        "registry",
+        "simulator",
+        "task",
+        "view",
+    },
     "cli": {"run", "query"},
 }
 
@@ -62,6 +82,67 @@ def test_a_short_name_re_exports_the_very_objects_of_its_room(short, real):
     assert room.__spec__.name == real  # the real module keeps its own name
     first = (mod.__doc__ or "").splitlines()[0]
     assert f"`{real}`" in first, f"{short}: the docstring names the module it re-exports"
+
+
+# modules that were split by job, and the names their old paths keep re-exporting (users'
+# code, notebooks and bench scripts import them there): old module -> {name: real module}
+SPLIT = {
+    "comexp.method.perception": {
+        "observe": "comexp.method.observation",
+        "perceive_first": "comexp.method.observation",
+        "mask_pusher": "comexp.method.observation",
+        "observe_boundary": "comexp.method.observation",
+        "PerceptionError": "comexp.method.observation",
+        "PoseTracker": "comexp.method.tracking",
+        "PoseFit": "comexp.method.tracking",
+        "render_prism_depth": "comexp.method.rendering",
+        "render_prism_depth_numpy": "comexp.method.rendering",
+    },
+    "comexp.experiment.simulator": {
+        "Simulator": "comexp.experiment.interface",
+        "PushOutcome": "comexp.experiment.interface",
+        "PushStatus": "comexp.experiment.interface",
+        "Frame": "comexp.experiment.interface",
+        "at_rest": "comexp.experiment.interface",
+        "classify_state": "comexp.experiment.interface",
+        "make_simulator": "comexp.experiment.registry",
+        "physics_identity": "comexp.experiment.registry",
+        "backend_names": "comexp.experiment.registry",
+        "BACKENDS": "comexp.experiment.registry",
+        "object_window_px": "comexp.experiment.view",
+        "crop_camera": "comexp.experiment.view",
+        "surely_in_view": "comexp.experiment.view",
+        "contact_push": "comexp.experiment.contact",
+        "pusher_contact_height_m": "comexp.experiment.contact",
+        "point_polygon_distance": "comexp.experiment.contact",
+    },
+    "comexp.experiment.episode": {
+        "EpisodeSpec": "comexp.experiment.task",
+        "EpisodeResult": "comexp.experiment.task",
+        "PushRecord": "comexp.experiment.task",
+        "build_scene": "comexp.experiment.task",
+        "initial_yaw_rad": "comexp.experiment.task",
+    },
+}
+
+
+@pytest.mark.parametrize("old", sorted(SPLIT))
+def test_a_split_module_keeps_its_old_names(old):
+    mod = importlib.import_module(old)
+    for name, real in SPLIT[old].items():
+        assert getattr(mod, name) is getattr(importlib.import_module(real), name), name
+        assert name in mod.__all__, f"{old}.__all__ lacks {name}"
+
+
+def test_every_module_names_its_one_job_first():
+    """A module's first docstring line names its job (what a reader sees first)."""
+    bad = []
+    for folder in PACKAGE_DIRS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+            if path.name != "__init__.py" and not doc.strip():
+                bad.append(str(path.relative_to(ROOT)))
+    assert not bad, f"modules without a docstring: {bad}"
 
 
 def test_no_import_hook():
@@ -160,3 +241,51 @@ def test_every_module_of_the_package_is_tracked_by_git():
     )
     hidden = [f for f in res.stdout.split() if f.endswith(".py")]
     assert hidden == [], f"ignored by .gitignore: {hidden}"
+
+
+# At most this many functions over LONG_LINES lines in the package (comexp/, backends/, workers/):
+# a long function does several jobs that want names of their own. A compiled kernel (Numba's
+# njit) may stay long where splitting it costs speed; it says so in its docstring.
+LONG_LINES = 80
+MAX_LONG_FUNCTIONS = 3
+PACKAGE_DIRS = ("comexp", "backends", "workers")
+
+
+def _long_functions() -> dict[str, ast.FunctionDef | ast.AsyncFunctionDef]:
+    """`path:line name` -> node, for every function or method over LONG_LINES lines (from
+    `def` to its last line, decorators not counted)."""
+    out = {}
+    for folder in PACKAGE_DIRS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if (
+                    isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+                    and node.end_lineno - node.lineno + 1 > LONG_LINES
+                ):
+                    out[f"{path.relative_to(ROOT)}:{node.lineno} {node.name}"] = node
+    return out
+
+
+def _compiled(node: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """Decorated with Numba's njit (or jit), bare or called."""
+    for d in node.decorator_list:
+        f = d.func if isinstance(d, ast.Call) else d
+        name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", "")
+        if name in ("njit", "jit"):
+            return True
+    return False
+
+
+def test_few_long_functions():
+    long = _long_functions()
+    assert len(long) <= MAX_LONG_FUNCTIONS, (
+        f"{len(long)} functions over {LONG_LINES} lines (at most {MAX_LONG_FUNCTIONS}): "
+        + ", ".join(sorted(long))
+    )
+
+
+def test_a_long_compiled_kernel_says_why():
+    for where, node in _long_functions().items():
+        if _compiled(node):
+            doc = ast.get_docstring(node) or ""
+            assert "Long on purpose" in doc, f"{where}: say why the kernel is not split"

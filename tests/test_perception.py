@@ -9,15 +9,10 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.method.perception import (
-    PerceptionError,
-    PoseTracker,
-    object_mask,
-    observe,
-    perceive_first,
-    render_prism_depth,
-)
+from comexp.method.observation import PerceptionError, object_mask, observe, perceive_first
+from comexp.method.rendering import render_prism_depth
 from comexp.method.scene import CameraSpec, DepthImage, Pose2D
+from comexp.method.tracking import PoseTracker
 
 CAM = CameraSpec().model()
 H = 0.03

@@ -139,7 +139,7 @@ def test_the_same_episode_gives_the_same_numbers():
 
 def test_rendered_pose_matches_the_state():
     """The camera is the exact ray-cast of the prism at the model's pose."""
-    from comexp.method.perception import observe
+    from comexp.method.observation import observe
 
     sim = PlanarSimulator()
     out = _pushed_box(sim, 0.1, 0.4)

@@ -14,7 +14,7 @@ import pytest
 from comexp.experiment.episode import EpisodeSpec, run_episode
 from comexp.experiment.objects import com_point, load_objects
 from comexp.experiment.simulator import make_simulator
-from comexp.method.perception import object_mask
+from comexp.method.observation import object_mask
 from comexp.method.scene import FloorSpec, Pose2D, SceneSpec
 
 ENGINES = ("pybullet", "mujoco")

@@ -15,8 +15,7 @@ from hydra import compose, initialize_config_module
 from comexp.experiment.config import ConfigError, prepare_job
 from comexp.experiment.episode import EpisodeSpec, build_scene
 from comexp.experiment.simulator import Frame, at_rest, contact_push, make_simulator
-from comexp.method.perception import (
-    PoseTracker,
+from comexp.method.observation import (
     mask_pusher,
     object_mask,
     observe,
@@ -24,6 +23,7 @@ from comexp.method.perception import (
     perceive_first,
 )
 from comexp.method.scene import Pose2D
+from comexp.method.tracking import PoseTracker
 from comexp.results.schema import SCHEMA_VERSION
 from comexp.results.store import ResultsDB
 

@@ -34,7 +34,7 @@ from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 from comexp.experiment.platform import has_sigalrm
 
 DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
-DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.simulator:make_simulator"
+DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.registry:make_simulator"
 # The test seam of a whole `comexp` process (tests/test_cli.py runs the command with a fake
 # runner and simulator): dotted paths in the environment, read where the pool is made, so that
 # the user-facing config carries no test hooks.
@@ -219,7 +219,7 @@ class EpisodeWorker:
         if not spec.physics or spec.backend != self.backend:
             return ""
         if self._physics is None:
-            from comexp.experiment.simulator import physics_identity
+            from comexp.experiment.registry import physics_identity
 
             try:
                 self._physics = physics_identity(self.backend, options=self.backend_options)

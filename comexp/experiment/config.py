@@ -25,6 +25,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
 from comexp.experiment.objects import ObjectDef, load_objects
+from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES, backend_names
 from comexp.method.estimator import EstimatorSettings
 
 FLOOR_KINDS = ("iso", "aniso")
@@ -47,7 +48,7 @@ class BackendConfig:
     floor_friction: str = "model"
 
     def options(self) -> dict[str, str]:
-        """The simulator's constructor options (`comexp.experiment.simulator.make_simulator`)."""
+        """The simulator's constructor options (`comexp.experiment.registry.make_simulator`)."""
         return {} if self.name == "planar" else {"floor_friction": self.floor_friction}
 
 
@@ -286,23 +287,54 @@ def _check_list(key: str, values: Sequence[float], *, minimum: float, strict: bo
 
 
 def validate(cfg: ExperimentConfig) -> EstimatorSettings:
-    """Value checks that a schema cannot express; returns the estimator settings."""
-    from comexp.experiment.simulator import backend_names
+    """Value checks that a schema cannot express; returns the estimator settings.
 
-    if cfg.backend.name not in backend_names():
+    The checks run in the order of the config's sections, and the first that fails raises."""
+    _validate_backend(cfg.backend)
+    _validate_floor(cfg.floor)
+    if not _finite(cfg.speed) or cfg.speed <= 0:
+        raise ConfigError(f"speed must be a positive number of cm/s, got {cfg.speed!r}")
+    _check_list("pusher.mu", cfg.pusher.mu, minimum=0.0, strict=False)
+    g = cfg.grid
+    if g.coms_per_object < 1:
+        raise ConfigError(f"grid.coms_per_object must be >= 1, got {g.coms_per_object}")
+    _check_list("grid.izz_scales", g.izz_scales, minimum=0.0, strict=True)
+    if not _finite(g.com_margin_cm) or g.com_margin_cm < 0:
+        raise ConfigError(f"grid.com_margin_cm must be >= 0, got {g.com_margin_cm!r}")
+    _validate_episode(cfg.episode)
+    _validate_camera(cfg.camera)
+    if g.objects is not None:
+        if not g.objects:
+            raise ConfigError("grid.objects must not be empty (omit it to use every object)")
+        if len(set(g.objects)) != len(g.objects):
+            raise ConfigError(f"grid.objects has duplicates: {list(g.objects)}")
+    try:
+        check_workers(cfg.workers)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    _validate_execution(cfg.execution)
+    if cfg.seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
+    if not cfg.db.strip():
+        raise ConfigError("db must be a database URL or a file path")
+    return _validate_estimator(cfg.estimator)
+
+
+def _validate_backend(backend: BackendConfig) -> None:
+    if backend.name not in backend_names():
         raise ConfigError(
-            f"unknown backend {cfg.backend.name!r} (choose one of: {', '.join(backend_names())})"
+            f"unknown backend {backend.name!r} (choose one of: {', '.join(backend_names())})"
         )
-    from comexp.experiment.simulator import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES
-
-    if cfg.backend.floor_friction not in FLOOR_FRICTION_CHOICES:
+    if backend.floor_friction not in FLOOR_FRICTION_CHOICES:
         raise ConfigError(
             f"backend.floor_friction must be one of {', '.join(FLOOR_FRICTION_CHOICES)}, "
-            f"got {cfg.backend.floor_friction!r}"
+            f"got {backend.floor_friction!r}"
         )
-    if cfg.backend.name == "planar" and cfg.backend.floor_friction != "model":
+    if backend.name == "planar" and backend.floor_friction != "model":
         raise ConfigError("backend=planar is the friction model itself: floor_friction=model only")
-    fl = cfg.floor
+
+
+def _validate_floor(fl: FloorConfig) -> None:
     if fl.name not in FLOOR_KINDS:
         raise ConfigError(f"floor.name must be one of {', '.join(FLOOR_KINDS)}, got {fl.name!r}")
     _check_list("floor.mu", fl.mu, minimum=0.0, strict=False)
@@ -320,16 +352,9 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
                 raise ConfigError(f"floor.orientations: unknown orientation {o!r} (use xy, yx)")
         if len(set(fl.orientations)) != len(fl.orientations):
             raise ConfigError(f"floor.orientations has duplicates: {list(fl.orientations)}")
-    if not _finite(cfg.speed) or cfg.speed <= 0:
-        raise ConfigError(f"speed must be a positive number of cm/s, got {cfg.speed!r}")
-    _check_list("pusher.mu", cfg.pusher.mu, minimum=0.0, strict=False)
-    g = cfg.grid
-    if g.coms_per_object < 1:
-        raise ConfigError(f"grid.coms_per_object must be >= 1, got {g.coms_per_object}")
-    _check_list("grid.izz_scales", g.izz_scales, minimum=0.0, strict=True)
-    if not _finite(g.com_margin_cm) or g.com_margin_cm < 0:
-        raise ConfigError(f"grid.com_margin_cm must be >= 0, got {g.com_margin_cm!r}")
-    ep = cfg.episode
+
+
+def _validate_episode(ep: EpisodeConfig) -> None:
     if not _finite(ep.push_length_cm) or ep.push_length_cm <= 0:
         raise ConfigError(f"episode.push_length_cm must be > 0, got {ep.push_length_cm!r}")
     if not _finite(ep.mass_kg) or ep.mass_kg <= 0:
@@ -337,43 +362,30 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
     if not _finite(ep.recenter_beyond_cm) or ep.recenter_beyond_cm < 0:
         msg = f"episode.recenter_beyond_cm must be >= 0 (0: never), got {ep.recenter_beyond_cm!r}"
         raise ConfigError(msg)
-    fps = cfg.camera.fps
+
+
+def _validate_camera(camera: CameraConfig) -> None:
+    fps = camera.fps
     if not _finite(fps) or not 0 <= fps <= MAX_CAMERA_FPS:
         raise ConfigError(
             f"camera.fps must be between 0 (before and after only) and {MAX_CAMERA_FPS:g} "
             f"(a commodity depth camera), got {fps!r}"
         )
-    if cfg.camera.renderer not in RENDERER_CHOICES:
+    if camera.renderer not in RENDERER_CHOICES:
         raise ConfigError(
-            f"camera.renderer must be one of {', '.join(RENDERER_CHOICES)}, "
-            f"got {cfg.camera.renderer!r}"
+            f"camera.renderer must be one of {', '.join(RENDERER_CHOICES)}, got {camera.renderer!r}"
         )
-    if g.objects is not None:
-        if not g.objects:
-            raise ConfigError("grid.objects must not be empty (omit it to use every object)")
-        if len(set(g.objects)) != len(g.objects):
-            raise ConfigError(f"grid.objects has duplicates: {list(g.objects)}")
-    try:
-        check_workers(cfg.workers)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
-    if cfg.execution.batch_size < 1:
-        raise ConfigError(f"execution.batch_size must be >= 1, got {cfg.execution.batch_size}")
-    if not cfg.execution.restart_timeout_s > 0:
-        raise ConfigError(
-            f"execution.restart_timeout_s must be > 0, got {cfg.execution.restart_timeout_s}"
-        )
-    if not (_finite(cfg.execution.episode_timeout_s) and cfg.execution.episode_timeout_s > 0):
-        raise ConfigError(
-            f"execution.episode_timeout_s must be > 0, got {cfg.execution.episode_timeout_s}"
-        )
-    if cfg.execution.max_retries < 0:
-        raise ConfigError(f"execution.max_retries must be >= 0, got {cfg.execution.max_retries}")
-    if cfg.seed < 0:
-        raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
-    if not cfg.db.strip():
-        raise ConfigError("db must be a database URL or a file path")
-    return _validate_estimator(cfg.estimator)
+
+
+def _validate_execution(ex: ExecutionConfig) -> None:
+    if ex.batch_size < 1:
+        raise ConfigError(f"execution.batch_size must be >= 1, got {ex.batch_size}")
+    if not ex.restart_timeout_s > 0:
+        raise ConfigError(f"execution.restart_timeout_s must be > 0, got {ex.restart_timeout_s}")
+    if not (_finite(ex.episode_timeout_s) and ex.episode_timeout_s > 0):
+        raise ConfigError(f"execution.episode_timeout_s must be > 0, got {ex.episode_timeout_s}")
+    if ex.max_retries < 0:
+        raise ConfigError(f"execution.max_retries must be >= 0, got {ex.max_retries}")
 
 
 def _validate_estimator(est: Any) -> EstimatorSettings:

@@ -54,7 +54,7 @@ def expand_grid(
         from comexp.experiment.objects import com_points
 
         com_fn = com_points
-    from comexp.experiment.simulator import physics_identity
+    from comexp.experiment.registry import physics_identity
 
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
     physics = physics_identity(cfg.backend.name, options=simulator_options(cfg))

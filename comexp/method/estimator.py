@@ -605,7 +605,7 @@ def region_from_outline(outline_m: np.ndarray, pixel_m: float) -> np.ndarray:
     spacing `pixel_m` (anchored at the frame's origin) inside the outline's convex hull, in the
     outline's frame, (n, 2) metres. Why the hull: the CoM of a non-convex object can lie
     outside its footprint (a U, a C); the paper starts from the hull's pixels."""
-    from comexp.method.perception import hull_region  # cv2 and numba: only when needed
+    from comexp.method.observation import hull_region  # cv2 and shapely: only when needed
 
     outline = np.asarray(outline_m, dtype=float)
     hull = np.asarray(shapely.MultiPoint(outline).convex_hull.exterior.coords)[:-1]

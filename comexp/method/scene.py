@@ -205,6 +205,16 @@ class Pose2D:
         dx, dy = p[..., 0] - self.x_m, p[..., 1] - self.y_m
         return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
 
+    def compose(self, b: Pose2D) -> Pose2D:
+        """self o b: the pose b (given in this pose's frame) expressed in the world."""
+        p = self.to_world(np.array([b.x_m, b.y_m]))
+        return Pose2D(float(p[0]), float(p[1]), self.yaw_rad + b.yaw_rad)
+
+    def relative(self, b: Pose2D) -> Pose2D:
+        """self^-1 o b: the pose b (given in the world) expressed in this pose's frame."""
+        p = self.to_object(np.array([b.x_m, b.y_m]))
+        return Pose2D(float(p[0]), float(p[1]), b.yaw_rad - self.yaw_rad)
+
 
 def tilt_deg(roll_rad: float, pitch_rad: float) -> float:
     """Angle between a body's z axis and world z, from its roll and pitch (ZYX Euler)."""

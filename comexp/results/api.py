@@ -184,7 +184,7 @@ def backend_options_for(spec: EpisodeSpec) -> dict[str, Any]:
     episode its physics: the ones whose `physics_identity` is the spec's. The identity keeps
     only a hash of the options, so each choice is tried. An episode stored without a pinned
     physics runs with the defaults."""
-    from comexp.experiment.simulator import (
+    from comexp.experiment.registry import (
         FLOOR_FRICTION_CHOICES,
         RENDERER_CHOICES,
         physics_identity,
@@ -215,7 +215,7 @@ def replay(db: DbLike, episode_id: int) -> EpisodeResult:
     versions) that stored it the result equals the stored one; an episode whose physics this
     comexp no longer has is refused (ValueError) rather than run with other physics."""
     from comexp.experiment.episode import run_episode
-    from comexp.experiment.simulator import make_simulator
+    from comexp.experiment.registry import make_simulator
 
     spec, row = stored_spec(db, episode_id)
     if spec.backend != row["backend"]:

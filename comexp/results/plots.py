@@ -113,35 +113,8 @@ def _box_figure(
     fig_w = min(24.0, fig_w if turn else max(fig_w, fits_w))
     fig = Figure(figsize=(fig_w, 5.2 + (0.06 * longest if turn else 0.0)), layout="constrained")
     ax = fig.add_subplot()
-    handles = []
     top = max((max(v) for v in cells.values() if v), default=1.0)
-    for i, s in enumerate(series):
-        data, pos = [], []
-        for j, x in enumerate(xkeys):
-            errs = cells.get((x, s), [])
-            if errs:
-                data.append(errs)
-                pos.append(j + (i - (len(series) - 1) / 2) * width)
-        if not data:
-            continue
-        color = _COLORS[i % len(_COLORS)]
-        bp = ax.boxplot(
-            data,
-            positions=pos,
-            widths=width * 0.85,
-            patch_artist=True,
-            showmeans=True,
-            meanprops={"marker": "o", "markerfacecolor": "white", "markeredgecolor": "black"},
-            medianprops={"color": "black"},
-            flierprops={"markersize": 3},
-            manage_ticks=False,
-        )
-        for box in bp["boxes"]:
-            box.set_facecolor(color)
-            box.set_alpha(0.6)
-        for p, errs in zip(pos, data, strict=True):
-            ax.text(p, max(errs) + 0.02 * top, f"{len(errs)}", ha="center", va="bottom", fontsize=6)
-        handles.append((bp["boxes"][0], series_label(s)))
+    handles = _draw_boxes(ax, cells, xkeys, series, series_label, width, top)
     star = None
     for (x, s), value in (marks or {}).items():
         if x in xkeys and s in series:
@@ -178,6 +151,48 @@ def _box_figure(
     )
     fig.savefig(path, dpi=110)
     return path
+
+
+def _draw_boxes(
+    ax: Any,
+    cells: Mapping[tuple[Any, Any], list[float]],
+    xkeys: Sequence[Any],
+    series: Sequence[Any],
+    series_label: Callable[[Any], str],
+    width: float,
+    top: float,
+) -> list[tuple[Any, str]]:
+    """One box per (x key, series) cell with errors, side by side within each x group, the
+    number of episodes above each; returns the legend's (artist, label) of every series drawn."""
+    handles = []
+    for i, s in enumerate(series):
+        data, pos = [], []
+        for j, x in enumerate(xkeys):
+            errs = cells.get((x, s), [])
+            if errs:
+                data.append(errs)
+                pos.append(j + (i - (len(series) - 1) / 2) * width)
+        if not data:
+            continue
+        color = _COLORS[i % len(_COLORS)]
+        bp = ax.boxplot(
+            data,
+            positions=pos,
+            widths=width * 0.85,
+            patch_artist=True,
+            showmeans=True,
+            meanprops={"marker": "o", "markerfacecolor": "white", "markeredgecolor": "black"},
+            medianprops={"color": "black"},
+            flierprops={"markersize": 3},
+            manage_ticks=False,
+        )
+        for box in bp["boxes"]:
+            box.set_facecolor(color)
+            box.set_alpha(0.6)
+        for p, errs in zip(pos, data, strict=True):
+            ax.text(p, max(errs) + 0.02 * top, f"{len(errs)}", ha="center", va="bottom", fontsize=6)
+        handles.append((bp["boxes"][0], series_label(s)))
+    return handles
 
 
 def _core_label(cond: Condition) -> str:
@@ -422,7 +437,7 @@ def reconstruct_regions(
     import shapely
 
     from comexp.method.estimator import EstimatorSettings, update_region
-    from comexp.method.perception import hull_region
+    from comexp.method.observation import hull_region
     from comexp.method.scene import CameraSpec
     from comexp.results.api import _from_json
 

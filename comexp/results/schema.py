@@ -85,7 +85,7 @@ class Episode(Base):
     height_cm: Mapped[float] = mapped_column(Float)
     push_length_cm: Mapped[float] = mapped_column(Float)
     recenter_beyond_cm: Mapped[float | None] = mapped_column(Float, nullable=True)
-    # what determined the physics (comexp.experiment.simulator.physics_identity); part of the
+    # what determined the physics (comexp.experiment.registry.physics_identity); part of the
     # episode key
     physics: Mapped[str] = mapped_column(String(200), default="")
     camera_fps: Mapped[float] = mapped_column(Float, default=0.0)  # tracking frames per second

@@ -1,0 +1,503 @@
+"""The one simulator interface and its push protocol, shared by every backend.
+
+A backend builds a scene from engine-independent dataclasses (`comexp.method.scene`), renders the
+top-down depth image, executes straight pushes and lets the object come to rest. The push
+protocol (`Simulator.push`, run by `_PushRun`) is written once, here, on primitives each engine
+implements. The true object state is for evaluation, tests and failure detection only; the
+estimator never reads it unless `rotation_source=oracle` is asked for.
+
+What a simulator needs but is not the interface lives beside it: the backends by name and
+their physics identity (`comexp.experiment.registry`), what the camera sees of the object
+(`comexp.experiment.view`), where pusher and object meet (`comexp.experiment.contact`).
+`comexp.experiment.simulator` re-exports all of them under the names they had together.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from comexp.experiment.contact import pusher_clearance_m
+from comexp.experiment.view import outline_radius_m, surely_in_view
+from comexp.method.scene import (
+    CameraModel,
+    DepthImage,
+    ObjectState,
+    Pose2D,
+    PushCommand,
+    SceneSpec,
+    SimSettings,
+    wrap_angle,
+)
+
+# Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
+# pusher's top, unreachable by an object still in view.
+PARK_XY_M = (0.0, 0.5)
+
+
+class PushStatus(enum.StrEnum):
+    OK = "ok"
+    TIPPED = "tipped"
+    LEFT_VIEW = "left_view"
+    SIM_UNSTABLE = "sim_unstable"
+    NOT_SETTLED = "not_settled"
+    PATH_BLOCKED = "path_blocked"  # the pusher's start position overlaps the object
+
+
+@dataclass(frozen=True)
+class PushOutcome:
+    status: PushStatus
+    pose_before: Pose2D
+    pose_after: Pose2D
+    sim_time_s: float
+    steps: int
+    contact_made: bool
+    max_pusher_lag_m: float  # worst |actual - commanded| pusher position during the push
+    max_tilt_deg: float
+    n_frames: int = 0  # tracking frames handed to `on_frame` (Simulator.push)
+    # true CCW rotation over the push, unwrapped (summed from check to check, so a push may
+    # turn more than half a turn); None from a simulator that does not follow it
+    true_rotation_deg: float | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status is PushStatus.OK
+
+    @property
+    def rotation_deg(self) -> float:
+        """True CCW rotation of the object during the push, wrapped to (-180, 180]."""
+        return math.degrees(wrap_angle(self.pose_after.yaw_rad - self.pose_before.yaw_rad))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A depth image taken during a push (`Simulator.push(on_frame=...)`).
+
+    The pusher may be in it: the engines render their pusher, touching the object's side.
+    Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
+    tracker can mask it (`comexp.method.observation.mask_pusher`). On the engines `image` is only
+    the window around the object (`object_window_px`); its camera model says where it lies.
+    """
+
+    image: DepthImage
+    t_s: float  # since the start of the push
+    pusher_xy_m: tuple[float, float]
+    pusher_radius_m: float
+
+
+def classify_state(
+    state: ObjectState,
+    outline_m: np.ndarray,
+    camera: CameraModel,
+    settings: SimSettings,
+    radius_m: float | None = None,
+) -> PushStatus | None:
+    """Failure check shared by both backends; None when the state is healthy.
+
+    Order matters: a non-finite state makes the other checks meaningless, and a tipped object
+    is reported as tipped even if it then also leaves the view. `radius_m`
+    (`outline_radius_m`, passed by a caller that checks one outline often) enables the cheap
+    `surely_in_view` test before the exact one.
+    """
+    if not state.is_finite:
+        return PushStatus.SIM_UNSTABLE
+    if state.tilt_deg > settings.tip_limit_deg:
+        return PushStatus.TIPPED
+    x_m, y_m, _ = state.position_m
+    if radius_m is not None and surely_in_view(x_m, y_m, radius_m, camera):
+        return None
+    corners = state.pose.to_world(outline_m)
+    uv = camera.world_to_pixel(corners[:, 0], corners[:, 1], 0.0)
+    inside = (
+        (uv[:, 0] >= 0)
+        & (uv[:, 0] <= camera.width_px - 1)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] <= camera.height_px - 1)
+    )
+    if not bool(np.all(inside)):
+        return PushStatus.LEFT_VIEW
+    return None
+
+
+class Simulator(ABC):
+    """One engine instance behind the shared push protocol.
+
+    `build` may be called many times (scene reuse is the backend's job). The protocol of a push
+    (`push`: start clear, move along the normal for the travel, stop, wait for rest under one
+    settle rule, clear the pusher, classify failures) is written once, here; an engine
+    implements only the primitives below it (place and drive the pusher, advance, read the
+    state), so that a cross-engine comparison compares physics, not protocols.
+    """
+
+    name: str = ""
+    # steps advanced between two failure / rest checks (an engine-specific need: MuJoCo runs a
+    # chunk of steps in C between Python checks); part of the protocol's settings
+    check_every_steps: int = 5
+
+    def __init__(self, settings: SimSettings | None = None) -> None:
+        self.settings = settings or SimSettings()
+        # when a list, every step's ObjectState is appended to it (physics tests: lift, tilt)
+        self.trace: list[ObjectState] | None = None
+
+    @abstractmethod
+    def build(self, scene: SceneSpec) -> None:
+        """(Re)create floor, object at `scene.initial_pose` resting on the floor, the pusher
+        parked out of the camera's view, and the camera."""
+
+    @abstractmethod
+    def render_depth(self) -> DepthImage:
+        """Top-down metric depth image of the current scene (pusher parked, out of view)."""
+
+    @abstractmethod
+    def object_state(self) -> ObjectState:
+        """True state of the object frame: evaluation and tests only."""
+
+    # --- protocol primitives -------------------------------------------------------------
+    @abstractmethod
+    def _place_pusher(self, xy: np.ndarray | Sequence[float]) -> None:
+        """Put the pusher at rest at a world point (only called where it is clear of the
+        object: the start of a push, the parking spot)."""
+
+    @abstractmethod
+    def _pusher_xy(self) -> np.ndarray:
+        """The pusher axis' actual world position."""
+
+    @abstractmethod
+    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+        """Run len(targets) steps; the pusher reaches targets[i] (world, m) at the end of
+        step i, moving straight between them. Returns (pusher touched the object during these
+        steps, max tilt in deg over them). Appends every step's state to `trace` if set."""
+
+    def render_tracking_depth(self) -> DepthImage:
+        """The depth image of a tracking frame taken during a push; an engine may override it
+        with a cheaper renderer that keeps the camera's projection: the engines render only
+        the window of the image the object can cover (`object_window_px`), returned with the
+        camera model of that window (`crop_camera`), so its pixels map to the same world points
+        as the full image's."""
+        return self.render_depth()
+
+    def _raycast_depth(self) -> DepthImage:
+        """The exact ray-cast depth image of the prism at the true pose (`camera.renderer=
+        raycast`): an engine's alternative to its own renderer, the same pixels as planar's."""
+        from comexp.method.rendering import render_prism_depth
+
+        scene = self._scene_or_fail()
+        return render_prism_depth(
+            self._camera_model(), self._outline_m(), scene.obj.height_m, self.object_state().pose
+        )
+
+    def _steps_still(self, targets: np.ndarray) -> int:
+        """How many of the pusher's next `targets` (one per step) surely leave the object
+        exactly as it is: a backend that can prove it (the object exactly at rest, nothing
+        able to reach it within those steps) returns a count, and the protocol advances them
+        without its checks (each would see the same state). 0: unknown, check every chunk."""
+        return 0
+
+    def _engine_failure(self) -> PushStatus | None:
+        """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
+        return None
+
+    def _park_xy(self) -> tuple[float, float]:
+        return PARK_XY_M
+
+    # --- the push protocol ---------------------------------------------------------------
+    def push(
+        self,
+        cmd: PushCommand,
+        on_frame: Callable[[Frame], None] | None = None,
+        frame_interval_s: float = 0.0,
+        on_still: Callable[[float], None] | None = None,
+        frame_wanted: Callable[[float, bool], bool] | None = None,
+    ) -> PushOutcome:
+        """Execute the push, let the object come to rest, clear and park the pusher, report.
+
+        With `on_frame` and `frame_interval_s` > 0 the camera watches the push: at the first
+        protocol check at or after every multiple of `frame_interval_s` since the push began,
+        if the object is moving (not `at_rest`), a tracking frame is rendered and handed over;
+        if it is at rest, nothing is rendered (a still object shows nothing new) and `on_still`
+        gets the frame's time, so that a tracker knows the object stopped there.
+        `frame_wanted(t_s, driving)`, if given, is asked before a moving frame is rendered
+        (`driving`: the pusher is still moving along the push line); a frame it declines is
+        neither rendered nor handed over, as a tracker that skips a camera frame never looks
+        at it.
+        Frames hang on the existing checks, so the steps an engine is asked for (`_advance`
+        calls) are the same with or without frames: watching never changes the physics. The
+        rate is therefore `1 / frame_interval_s` on average, each frame up to one check
+        (`check_every_steps` steps) late.
+
+        The three phases (drive, settle, retract) and the checks between chunks of steps are
+        `_PushRun`'s; this method starts the push and reports it.
+        """
+        camera = self._camera_model()
+        outline = self._outline_m()
+        before = self.object_state()
+        start = np.asarray(cmd.start_xy_m, dtype=float)
+        direction = np.asarray(cmd.direction_xy, dtype=float)
+        if pusher_clearance_m(start, before, outline, self._pusher_radius_m()) < 0.0:
+            return PushOutcome(
+                PushStatus.PATH_BLOCKED,
+                before.pose,
+                before.pose,
+                0.0,
+                0,
+                False,
+                0.0,
+                before.tilt_deg,
+            )
+        self._place_pusher(start)
+        run = _PushRun(
+            self, camera, outline, before, on_frame, frame_interval_s, on_still, frame_wanted
+        )
+        run.drive(cmd, start, direction)
+        run.settle(cmd, start, direction)
+        run.retract(direction)
+        return run.finish(before)
+
+    # the scene the protocol needs (every backend keeps the SceneSpec it built)
+    def _scene_or_fail(self) -> SceneSpec:
+        scene = getattr(self, "_scene", None)
+        if scene is None:
+            raise RuntimeError("build() a scene first")
+        return scene
+
+    def _camera_model(self) -> CameraModel:
+        return self._scene_or_fail().camera.model()
+
+    def _outline_m(self) -> np.ndarray:
+        return np.asarray(self._scene_or_fail().obj.outline_m, dtype=float)
+
+    def _pusher_radius_m(self) -> float:
+        return self._scene_or_fail().pusher.radius_m
+
+    def true_pose(self) -> Pose2D:
+        return self.object_state().pose
+
+    # --- test hooks: used by physics validation, never by the estimator ---------------------
+    @abstractmethod
+    def set_object_velocity(
+        self, linear_m_s: tuple[float, float, float], angular_rad_s: tuple[float, float, float]
+    ) -> None:
+        """Overwrite the object's velocity (world frame; linear = the object frame origin's)."""
+
+    def step(self, duration_s: float) -> None:
+        """Advance the simulation by `duration_s` (rounded to whole steps), pusher held still."""
+        self._scene_or_fail()
+        n = max(0, round(duration_s / self.settings.timestep_s))
+        if n:
+            self._advance(np.repeat(self._pusher_xy()[None, :], n, axis=0))
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release engine resources."""
+
+    def __enter__(self) -> Simulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def at_rest(state: ObjectState, s: SimSettings) -> bool:
+    """The one settle rule: what the camera and the estimator see is at rest, i.e. the object
+    frame's origin (a point of the bottom face) moves slower than `settle_speed_m_s` across
+    the floor and the object turns slower than `settle_spin_rad_s` about z.
+
+    Not on the full 3-D velocity: a many-sided prism rocks by ~0.02 deg at rest in pybullet
+    (its floor contact keeps 4 bottom corners, which 4 changes from step to step); that
+    rocking moves the CoM by mm/s and would never count as rest.
+    """
+    v = state.linear_velocity_m_s
+    return (
+        math.hypot(v[0], v[1]) < s.settle_speed_m_s
+        and abs(state.angular_velocity_rad_s[2]) < s.settle_spin_rad_s
+    )
+
+
+class _PushRun:
+    """One push under way (`Simulator.push`): the protocol's three phases and its checks.
+
+    The pusher advances in chunks of `check_every_steps` steps; after each chunk the object's
+    state is checked (failures, the turn so far, the settle rule) and, when due, a tracking
+    frame is taken. Steps that provably cannot move the object are advanced without checks
+    (`skip_still`). The counters (steps, contact, turn, tilt, frames) become the outcome.
+    """
+
+    def __init__(
+        self,
+        sim: Simulator,
+        camera: CameraModel,
+        outline: np.ndarray,
+        before: ObjectState,
+        on_frame: Callable[[Frame], None] | None,
+        frame_interval_s: float,
+        on_still: Callable[[float], None] | None,
+        frame_wanted: Callable[[float, bool], bool] | None,
+    ) -> None:
+        self.sim = sim
+        self.s = sim.settings
+        self.dt = self.s.timestep_s
+        self.camera = camera
+        self.outline = outline
+        self.radius = outline_radius_m(outline)
+        self.on_frame = on_frame
+        self.frame_interval_s = frame_interval_s
+        self.on_still = on_still
+        self.frame_wanted = frame_wanted
+        self.max_tilt = before.tilt_deg
+        self.steps = 0
+        self.contact = False
+        self.lag = 0.0
+        self.status: PushStatus | None = None
+        self.chunk = max(1, int(sim.check_every_steps))
+        self.watch = on_frame is not None and frame_interval_s > 0
+        self.next_frame_s = frame_interval_s
+        self.n_frames = 0
+        self.last_yaw = before.pose.yaw_rad
+        self.turned = 0.0
+
+    def _frame_due(self, t_s: float) -> bool:
+        """A frame is due at `t_s`: if so, the next one is due a frame interval later."""
+        if not (self.watch and t_s >= self.next_frame_s - 1e-9):
+            return False
+        fi = self.frame_interval_s
+        self.next_frame_s = (math.floor(t_s / fi + 1e-9) + 1) * fi
+        return True
+
+    def skip_still(self, targets: np.ndarray) -> int:
+        """Advance the leading steps of `targets` that cannot move the object, in whole
+        chunks, as one call; the checks they span are those of an object at rest (no
+        failure, no turn; a due frame is a still one). Returns how many were advanced."""
+        sim, s, chunk = self.sim, self.s, self.chunk
+        n = min(sim._steps_still(targets), len(targets)) // chunk * chunk - chunk
+        if n <= 0:
+            return 0
+        pose0 = sim.object_state().pose
+        touched, _ = sim._advance(targets[:n])
+        after = sim.object_state()
+        if touched or after.pose != pose0 or not at_rest(after, s):
+            raise RuntimeError(f"{sim.name}: the object moved in steps declared still")
+        self.contact = self.contact or touched
+        for _ in range(n // chunk):
+            self.steps += chunk
+            t_s = self.steps * self.dt
+            if self._frame_due(t_s) and self.on_still is not None:
+                self.on_still(t_s)
+        return n
+
+    def run(self, targets: np.ndarray, driving: bool = False) -> ObjectState:
+        """Advance one chunk of steps, then check: failures, turn, tilt, a due frame."""
+        sim, s = self.sim, self.s
+        touched, tilt = sim._advance(targets)
+        self.steps += len(targets)
+        self.contact = self.contact or touched
+        st = sim.object_state()
+        if st.is_finite:  # < half a turn between two checks (a few ms apart)
+            self.turned += wrap_angle(st.pose.yaw_rad - self.last_yaw)
+            self.last_yaw = st.pose.yaw_rad
+        self.max_tilt = max(self.max_tilt, tilt, st.tilt_deg if st.is_finite else 0.0)
+        self.status = sim._engine_failure() or classify_state(
+            st, self.outline, self.camera, s, self.radius
+        )
+        t_s = self.steps * self.dt
+        if self.status is None and self._frame_due(t_s):
+            if at_rest(st, s):  # a still object shows nothing new: no frame
+                if self.on_still is not None:
+                    self.on_still(t_s)
+            elif self.frame_wanted is None or self.frame_wanted(t_s, driving):
+                xy = sim._pusher_xy()
+                frame = Frame(
+                    sim.render_tracking_depth(),
+                    t_s,
+                    (float(xy[0]), float(xy[1])),
+                    sim._pusher_radius_m(),
+                )
+                self.on_frame(frame)  # type: ignore[misc]
+                self.n_frames += 1
+        return st
+
+    def drive(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
+        """1) The straight path at the commanded speed; the pusher is where the path is at
+        the end of each step."""
+        dt, chunk = self.dt, self.chunk
+        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
+        travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
+        k = self.skip_still(start + travelled[:, None] * direction)
+        while k < n_move and self.status is None:
+            n = min(chunk, n_move - k)
+            travelled = np.minimum(cmd.speed_m_s * dt * np.arange(k + 1, k + n + 1), cmd.travel_m)
+            targets = start + travelled[:, None] * direction
+            self.run(targets, driving=True)
+            k += n
+            self.lag = max(self.lag, float(np.linalg.norm(self.sim._pusher_xy() - targets[-1])))
+
+    def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
+        """2) Hold the pusher still; at rest = the object frame's floor point and yaw below
+        the settle limits at every check for settle_hold_s."""
+        if self.status is not None:
+            return
+        s, dt, chunk = self.s, self.dt, self.chunk
+        hold_checks = max(1, math.ceil(s.settle_hold_s / (dt * chunk) - 1e-9))
+        quiet = 0
+        held = np.repeat(start[None, :] + cmd.travel_m * direction[None, :], chunk, axis=0)
+        for _ in range(max(1, math.ceil(s.max_settle_s / (dt * chunk)))):
+            st = self.run(held)
+            if self.status is not None:
+                return
+            if at_rest(st, s):
+                quiet += 1
+                left = (hold_checks - quiet) * chunk
+                if left > 0:  # checks that would see the same still object: skipped
+                    quiet += self.skip_still(np.repeat(held[:1], left + chunk, axis=0)) // chunk
+                if quiet >= hold_checks:
+                    return
+            else:
+                quiet = 0
+        self.status = PushStatus.NOT_SETTLED
+
+    def retract(self, direction: np.ndarray) -> None:
+        """3) Back off along the push line until clear (parking is `finish`'s)."""
+        if self.status is not None:
+            return
+        s, dt, chunk = self.s, self.dt, self.chunk
+        end = self.sim._pusher_xy()
+        n_back = math.ceil(s.retract_m / (s.retract_speed_m_s * dt))
+        back = np.minimum(s.retract_speed_m_s * dt * np.arange(1, n_back + 1), s.retract_m)
+        i = 0
+        while i < n_back:
+            self.run(end - back[i : i + chunk, None] * direction)
+            i += chunk
+            if self.status is not None:
+                break
+            i += self.skip_still(end - back[i:, None] * direction)
+
+    def finish(self, before: ObjectState) -> PushOutcome:
+        """Classify the state at rest, park the pusher out of view once clear, report."""
+        sim, s = self.sim, self.s
+        after = sim.object_state()
+        if after.is_finite:
+            self.turned += wrap_angle(after.pose.yaw_rad - self.last_yaw)
+        status = self.status
+        if status is None or status is PushStatus.NOT_SETTLED:
+            status = classify_state(after, self.outline, self.camera, s, self.radius) or status
+        clearance = pusher_clearance_m(
+            sim._pusher_xy(), after, self.outline, sim._pusher_radius_m()
+        )
+        if clearance > s.clear_m:
+            sim._place_pusher(sim._park_xy())
+        max_tilt = max(self.max_tilt, after.tilt_deg) if after.is_finite else self.max_tilt
+        return PushOutcome(
+            status=status or PushStatus.OK,
+            pose_before=before.pose,
+            pose_after=after.pose if after.is_finite else before.pose,
+            sim_time_s=self.steps * self.dt,
+            steps=self.steps,
+            contact_made=self.contact,
+            max_pusher_lag_m=self.lag,
+            max_tilt_deg=max_tilt,
+            n_frames=self.n_frames,
+            true_rotation_deg=math.degrees(self.turned),
+        )

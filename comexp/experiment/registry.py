@@ -1,0 +1,73 @@
+"""The backends by name: which exist, their options, how one is made, what fixes its physics.
+
+`make_simulator(name, ...)` imports a backend's module only when it is asked for (the engines
+are heavy); `physics_identity(name, ...)` names what determines its results, part of every
+episode's identity. The interface every backend implements is `comexp.experiment.interface`'s.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+from comexp.method.scene import SimSettings
+
+if TYPE_CHECKING:
+    from comexp.experiment.interface import Simulator
+
+BACKENDS: dict[str, str] = {
+    "planar": "comexp.backends.planar_sim:PlanarSimulator",
+    "pybullet": "comexp.backends.pybullet_sim:PybulletSimulator",
+    "mujoco": "comexp.backends.mujoco_sim:MujocoSimulator",
+}
+# How an engine gets the floor's friction: "model" applies the shared footprint model
+# (backends/floor_friction.py) as a force each step, the engine's own object-floor friction off;
+# "native" is the engine's own contact friction (kept to show the difference).
+FLOOR_FRICTION_CHOICES = ("model", "native")
+# How an engine makes its depth images (`camera.renderer`): "raycast" is the exact ray cast of
+# the prism at the engine's pose (`comexp.method.rendering.render_prism_depth`, planar's
+# camera; no pusher in the image, which the tracker masks anyway); "engine" is the engine's own
+# renderer (pybullet's tiny renderer, MuJoCo's GL on Mesa).
+RENDERER_CHOICES = ("raycast", "engine")
+
+
+def physics_identity(
+    name: str, settings: SimSettings | None = None, options: dict | None = None
+) -> str:
+    """What determines an episode's physics on backend `name`, as one short string: the
+    backend's model revision (`PHYSICS_VERSION` in its module, bumped by any change that
+    changes results), the engine's version, and a hash of the backend's settings and of the
+    push protocol's. It is part of every episode's identity (`EpisodeSpec.physics`), so a
+    database is never resumed across physics versions and no report pools two of them."""
+    import hashlib
+    from importlib import metadata
+
+    try:
+        module_name = BACKENDS[name].split(":")[0]
+    except KeyError:
+        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
+    module = importlib.import_module(module_name)
+    engine = getattr(module, "ENGINE_DISTRIBUTION", None)
+    engine_v = metadata.version(engine) if engine else "none"
+    # the engine's own renderer is what every row had before `camera.renderer` existed: it is
+    # left out, so that those rows keep their identity
+    opts = {k: v for k, v in (options or {}).items() if (k, v) != ("renderer", "engine")}
+    text = repr((module.PHYSICS_SETTINGS, settings or SimSettings(), sorted(opts.items())))
+    digest = hashlib.sha256(text.encode()).hexdigest()[:10]
+    return f"{name}/{module.PHYSICS_VERSION}/{engine or 'numpy'}-{engine_v}/{digest}"
+
+
+def backend_names() -> list[str]:
+    return sorted(BACKENDS)
+
+
+def make_simulator(name: str, settings: SimSettings | None = None, **options) -> Simulator:
+    """Create a backend by name (`planar`, `pybullet`, `mujoco`); engines are imported lazily.
+    `options` are the backend's own (e.g. `floor_friction` for the engines)."""
+    try:
+        target = BACKENDS[name]
+    except KeyError:
+        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
+    module_name, cls_name = target.split(":")
+    cls = getattr(importlib.import_module(module_name), cls_name)
+    return cls(settings, **options)

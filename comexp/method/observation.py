@@ -1,0 +1,351 @@
+"""Observation: what one top-down depth image tells about the object, in metres on the floor.
+
+The object mask, the footprint points, the contour with inward normals, the initial CoM region
+(pixels inside the convex hull) and the contact candidates of the first image
+(`perceive_first`); the cheap boundary of a tracking frame taken during a push
+(`observe_boundary`, after `mask_pusher`). The pose that links images is `comexp.method.tracking`'s.
+
+Why metric back-projection: the camera is perspective, so the object's top face appears
+magnified and its side walls are visible away from the image centre. Back-projecting every mask
+pixel with its own depth (`CameraModel.pixel_to_world`) puts top-face pixels exactly above the
+footprint and side-wall pixels exactly on the outline, so all geometry below is in metres on
+the floor plane and independent of where the object sits in the image.
+
+Frames: world z up; image column u ~ +x, row v ~ -y (rows grow downward); yaw CCW positive.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import shapely
+
+from comexp.method.geometry import centroid as polygon_centroid
+from comexp.method.geometry import signed_area
+from comexp.method.scene import CameraModel, DepthImage, Pose2D
+
+MIN_HEIGHT_M = 0.004  # anything this far above the floor plane is object
+NORMAL_HALF_WINDOW_PX = 4  # contour pixels on each side used to fit a local tangent line
+# A contour point is a reliable contact (not near a corner) when a line fits its neighbours
+# (edge) or a parabola fits them symmetrically (arc). Tuned on ray-cast images of boxes,
+# polygons, discs and ellipses: normal error <= ~5 deg where accepted (docs/method.md).
+STRAIGHT_RMS_PX = 0.35
+ARC_RMS_PX = 0.25
+ARC_SLOPE_DEG = 3.0
+
+
+class PerceptionError(RuntimeError):
+    """The image does not show a usable object (empty mask, object cut by the image border).
+
+    `failure` is the episode failure reason it maps to.
+    """
+
+    def __init__(self, message: str, failure: str = "perception") -> None:
+        super().__init__(message)
+        self.failure = failure
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What one depth image tells about the object, in world metres on the floor plane.
+
+    `contour_m` is the object's outer boundary (back-projected boundary pixels), ordered
+    counter-clockwise in the y-up world frame, with `normals` the inward unit normals from a
+    local line fit and `straight` true where that fit is reliable (not at a corner).
+    """
+
+    mask: np.ndarray  # (H, W) bool
+    points_m: np.ndarray  # (n, 2) back-projected mask pixels
+    contour_m: np.ndarray  # (m, 2) CCW
+    normals: np.ndarray  # (m, 2) inward unit normals
+    straight: np.ndarray  # (m,) bool
+    pixel_m: float  # size of one pixel at the object's top face
+
+    @property
+    def hull_m(self) -> np.ndarray:
+        """Convex hull of the footprint points, counter-clockwise (k, 2)."""
+        hull = cv2.convexHull(self.points_m.astype(np.float32), clockwise=False)[:, 0, :]
+        hull = hull.astype(float)
+        # OpenCV's orientation flag refers to its own axes; enforce CCW in the y-up frame.
+        if signed_area(hull) < 0:
+            hull = hull[::-1]
+        return hull
+
+
+def floor_depth_m(camera: CameraModel) -> float:
+    """Depth of the floor plane z = 0 (the camera looks straight down)."""
+    return float(camera.position_m[2])
+
+
+def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarray:
+    """Pixels clearly above the floor; only the largest connected blob is kept (the object)."""
+    depth = img.depth_m
+    above = np.isfinite(depth) & (depth < floor_depth_m(img.camera) - min_height_m)
+    # Labels plus a bincount for the areas: cv2.connectedComponentsWithStats computes
+    # bounding boxes and centroids we do not need and costs ~8x more (docs/performance.md).
+    n, labels = cv2.connectedComponents(above.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(above)
+    areas = np.bincount(labels.ravel(), minlength=n)
+    biggest = 1 + int(np.argmax(areas[1:]))
+    return labels == biggest
+
+
+def _local_fit(pts: np.ndarray, half: int) -> dict[str, np.ndarray]:
+    """Local shape of a closed polyline around every point, vectorised over all points.
+
+    A line is fitted to the 2*half+1 neighbours (its direction orients the local frame), then a
+    parabola y = a + b x + c x^2 in that frame (x along the line, origin at the point). The
+    parabola gives a denoised position (p + a n) and tangent (slope b) that are unbiased on
+    curves too; its residual, and the line's, tell corners from edges and arcs.
+    """
+    m = len(pts)
+    idx = (np.arange(m)[:, None] + np.arange(-half, half + 1)[None, :]) % m
+    win = pts[idx]  # (m, w, 2)
+    d0 = win - win.mean(axis=1, keepdims=True)
+    sxx = np.mean(d0[..., 0] ** 2, axis=1)
+    syy = np.mean(d0[..., 1] ** 2, axis=1)
+    sxy = np.mean(d0[..., 0] * d0[..., 1], axis=1)
+    ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # major eigenvector of the scatter matrix
+    t = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    tr, det = sxx + syy, sxx * syy - sxy * sxy
+    line_rms = np.sqrt(np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0))
+    chord = pts[(np.arange(m) + half) % m] - pts[(np.arange(m) - half) % m]
+    t[np.sum(t * chord, axis=1) < 0] *= -1.0
+    n = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    d = win - pts[:, None, :]
+    x = np.sum(d * t[:, None, :], axis=2)
+    y = np.sum(d * n[:, None, :], axis=2)
+    a_mat = np.stack([np.ones_like(x), x, x * x], axis=2)
+    ata = np.einsum("mki,mkj->mij", a_mat, a_mat)
+    aty = np.einsum("mki,mk->mi", a_mat, y)
+    coef = np.linalg.solve(ata, aty[..., None])[..., 0]
+    fit = np.einsum("mki,mi->mk", a_mat, coef)
+    parab_rms = np.sqrt(np.mean((fit - y) ** 2, axis=1))
+    slope = coef[:, 1]
+    tangent = t + slope[:, None] * n
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    return {
+        "smooth": pts + coef[:, :1] * n,
+        "tangent": tangent,
+        "line_rms": line_rms,
+        "parab_rms": parab_rms,
+        "slope_deg": np.degrees(np.abs(np.arctan(slope))),
+    }
+
+
+def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
+    """Mask, footprint points, contour and inward normals of the object in one depth image."""
+    cam = img.camera
+    mask = object_mask(img, min_height_m)
+    if not mask.any():
+        raise PerceptionError("no object above the floor in the depth image", "left_view")
+    h, w = mask.shape
+    if mask[0, :].any() or mask[-1, :].any() or mask[:, 0].any() or mask[:, -1].any():
+        raise PerceptionError("the object touches the image border", "left_view")
+    # same row-major order as np.nonzero(mask), ~9x cheaper on a 224 x 224 mask
+    v, u = np.divmod(np.flatnonzero(mask), w)
+    depth = img.depth_m[v, u]
+    points = cam.pixel_to_world(u, v, depth)[:, :2]
+    top_depth = float(np.min(depth))
+    pixel_m = cam.pixel_size_m(top_depth)
+
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    c = max(contours, key=len)[:, 0, :]  # (m, 2) as (u, v)
+    cu, cv_ = c[:, 0], c[:, 1]
+    contour = cam.pixel_to_world(cu, cv_, img.depth_m[cv_, cu])[:, :2]
+    if signed_area(contour) < 0:
+        contour = contour[::-1].copy()
+    half = NORMAL_HALF_WINDOW_PX if len(contour) > 4 * NORMAL_HALF_WINDOW_PX else 1
+    fit = _local_fit(contour, half)
+    tangent = fit["tangent"]
+    normals = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)  # left of CCW = inward
+    line_px = fit["line_rms"] / pixel_m
+    parab_px = fit["parab_rms"] / pixel_m
+    # edges: a line fits; arcs: a parabola fits and is centred on the point (symmetric window)
+    straight = (line_px < STRAIGHT_RMS_PX) | (
+        (parab_px < ARC_RMS_PX) & (fit["slope_deg"] < ARC_SLOPE_DEG)
+    )
+    return Observation(
+        mask=mask,
+        points_m=points,
+        contour_m=fit["smooth"],
+        normals=normals,
+        straight=straight,
+        pixel_m=pixel_m,
+    )
+
+
+def mask_pusher(
+    img: DepthImage, pusher_xy_m: tuple[float, float], radius_m: float, margin_m: float = 1e-3
+) -> DepthImage:
+    """The image with the pusher removed (its pixels set to the floor's depth).
+
+    A pixel is the pusher's when its back-projected point (with its own depth) lies within
+    `radius_m + margin_m` of the pusher's axis: the pusher is a round body about a vertical
+    axis, so every point of it does, while a point of the object is at least `radius_m` from
+    the axis (it touches, does not penetrate), so at most a sliver of the object at the
+    contact goes with it. Only a small window around the pusher's projection is looked at.
+    """
+    cam = img.camera
+    depth = img.depth_m
+    hz = floor_depth_m(cam)
+    r = radius_m + margin_m
+    x, y = pusher_xy_m
+    # the pusher's projection at the floor and up to the camera's near end of the object
+    # (`CameraModel.world_to_pixel` of the square's corners, in scalars: the same arithmetic)
+    x0, y0, z0 = cam.position_m
+    us, vs = [], []
+    for depth_c in (z0 - 0.0, z0 - 0.5 * hz):
+        for wx, wy in ((x - r, y - r), (x + r, y + r)):
+            us.append(cam.cx_px + (wx - x0) * cam.fx_px / depth_c)
+            vs.append(cam.cy_px - (wy - y0) * cam.fy_px / depth_c)
+    u0 = max(math.floor(min(us)) - 1, 0)
+    u1 = min(math.ceil(max(us)) + 1, cam.width_px - 1)
+    v0 = max(math.floor(min(vs)) - 1, 0)
+    v1 = min(math.ceil(max(vs)) + 1, cam.height_px - 1)
+    if u1 < u0 or v1 < v0:
+        return img
+    d = depth[v0 : v1 + 1, u0 : u1 + 1]
+    vv, uu = np.nonzero(d < hz - MIN_HEIGHT_M)  # only what is above the floor can be it
+    if len(vv) == 0:
+        return img
+    dv = d[vv, uu]
+    # `CameraModel.pixel_to_world`'s x and y, without the stacking
+    px = x0 + ((uu + u0).astype(float) - cam.cx_px) * dv / cam.fx_px
+    py = y0 - ((vv + v0).astype(float) - cam.cy_px) * dv / cam.fy_px
+    hit = np.hypot(px - x, py - y) < r
+    if not hit.any():
+        return img
+    out = depth.copy()
+    out[vv[hit] + v0, uu[hit] + u0] = hz
+    return DepthImage(out, cam)
+
+
+@dataclass(frozen=True)
+class TrackingView:
+    """What a tracking frame needs: the object's boundary in world metres and the area
+    centroid of the polygon it bounds (`observe_boundary`)."""
+
+    contour_m: np.ndarray  # (m, 2)
+    centroid_m: np.ndarray  # (2,)
+
+
+def observe_boundary(
+    img: DepthImage,
+    near_xy_m: tuple[float, float] | None = None,
+    reach_m: float = 0.15,
+    min_height_m: float = MIN_HEIGHT_M,
+    max_points: int = 64,
+) -> TrackingView:
+    """The object's outer boundary in one frame, cheaply: only a window of `reach_m` around
+    `near_xy_m` (the last known position) is thresholded, no connected components (the
+    largest external contour is the object once the pusher is masked), no normal fits, and
+    at most `max_points` boundary points (evenly strided). A tracking frame only has to
+    place the pose in the right symmetric basin; the image at rest is measured in full."""
+    cam = img.camera
+    depth = img.depth_m
+    h, w = depth.shape
+    u0, v0, u1, v1 = 0, 0, w - 1, h - 1
+    x0, y0, z0 = cam.position_m
+    if near_xy_m is not None:
+        # `CameraModel.world_to_pixel` of the window's corners at the floor, in scalars
+        x, y = near_xy_m
+        fl = z0 - 0.0
+        ua = cam.cx_px + ((x - reach_m) - x0) * cam.fx_px / fl
+        ub = cam.cx_px + ((x + reach_m) - x0) * cam.fx_px / fl
+        va = cam.cy_px - ((y + reach_m) - y0) * cam.fy_px / fl
+        vb = cam.cy_px - ((y - reach_m) - y0) * cam.fy_px / fl
+        u0, u1 = max(int(ua), 0), min(int(math.ceil(ub)), w - 1)
+        v0, v1 = max(int(va), 0), min(int(math.ceil(vb)), h - 1)
+    win = depth[v0 : v1 + 1, u0 : u1 + 1]
+    above = (np.isfinite(win) & (win < floor_depth_m(cam) - min_height_m)).view(np.uint8)
+    contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        raise PerceptionError("no object above the floor in the tracking frame", "left_view")
+    c = max(contours, key=len)[:, 0, :]
+    if len(c) > max_points:
+        c = c[:: math.ceil(len(c) / max_points)]
+    cu, cv_ = c[:, 0] + u0, c[:, 1] + v0
+    dc = depth[cv_, cu]
+    # `CameraModel.pixel_to_world`'s x and y, without the stacking
+    contour = np.empty((len(c), 2))
+    contour[:, 0] = x0 + (cu.astype(float) - cam.cx_px) * dc / cam.fx_px
+    contour[:, 1] = y0 - (cv_.astype(float) - cam.cy_px) * dc / cam.fy_px
+    centre = polygon_centroid(contour) if len(contour) >= 3 else contour.mean(axis=0)
+    return TrackingView(contour, centre)
+
+
+def hull_region(hull_m: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Regular grid points (spacing = one pixel, grid anchored at the frame origin) inside a
+    polygon: the paper's "pixels inside the convex hull", as metric points on the floor.
+
+    A metric grid rather than the raw mask pixels keeps the region uniform (perspective
+    magnifies the top face and side walls crowd onto the outline), so its centroid is unbiased.
+    """
+    lo = np.floor(hull_m.min(axis=0) / spacing_m).astype(int)
+    hi = np.ceil(hull_m.max(axis=0) / spacing_m).astype(int)
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=1) * spacing_m
+    inside = shapely.contains_xy(shapely.Polygon(hull_m), pts[:, 0], pts[:, 1])
+    return pts[inside]
+
+
+def sample_contacts(
+    contour_m: np.ndarray, normals: np.ndarray, straight: np.ndarray, spacing_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Contact candidates every `spacing_m` of arc length along the contour, skipping corners
+    (where the normal, hence the push direction, is ill-defined)."""
+    seg = np.linalg.norm(np.diff(contour_m, axis=0, append=contour_m[:1]), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)[:-1]])
+    bins = np.floor(s / spacing_m).astype(int)
+    first = np.ones(len(bins), dtype=bool)
+    first[1:] = bins[1:] != bins[:-1]
+    keep = first & straight
+    return contour_m[keep].copy(), normals[keep].copy()
+
+
+@dataclass(frozen=True)
+class Perception:
+    """The first image's perception, expressed in the estimator's own object frame.
+
+    The estimator frame is the world frame at the first image, shifted to the footprint hull's
+    centroid: `frame_pose` is its pose in the world at that image (yaw 0 by construction).
+    """
+
+    frame_pose: Pose2D
+    region_m: np.ndarray  # initial CoM region (grid points inside the hull), estimator frame
+    outline_m: np.ndarray  # contour, estimator frame, CCW
+    outline_normals: np.ndarray
+    contacts_m: np.ndarray  # sampled contact points, estimator frame
+    contact_normals: np.ndarray  # inward unit normals = push directions
+    pixel_m: float
+
+
+def perceive_first(
+    img: DepthImage, contact_spacing_px: float = 2.0, min_height_m: float = MIN_HEIGHT_M
+) -> tuple[Perception, Observation]:
+    """Initial CoM region and contact candidates from the first image (Algorithm 1's input)."""
+    obs = observe(img, min_height_m)
+    hull = obs.hull_m
+    origin = polygon_centroid(hull)
+    frame = Pose2D(float(origin[0]), float(origin[1]), 0.0)
+    hull_local = hull - origin
+    region = hull_region(hull_local, obs.pixel_m)
+    outline = obs.contour_m - origin
+    contacts, cnormals = sample_contacts(
+        outline, obs.normals, obs.straight, contact_spacing_px * obs.pixel_m
+    )
+    perc = Perception(
+        frame_pose=frame,
+        region_m=region,
+        outline_m=outline,
+        outline_normals=obs.normals.copy(),
+        contacts_m=contacts,
+        contact_normals=cnormals,
+        pixel_m=obs.pixel_m,
+    )
+    return perc, obs
