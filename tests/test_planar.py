@@ -236,3 +236,52 @@ def test_steps_declared_still_that_move_the_object_are_an_error():
 
     with pytest.raises(RuntimeError, match="moved in steps declared still"):
         _watched_push(Liar(), 0.4, 0.0)
+
+
+def test_a_warm_started_tensionless_pressure_is_the_cold_one():
+    """`pressure_kernel` starts the tensionless solve beyond the kern from the last one's
+    coefficients: the same convex problem, so the same forces as a cold start, however far
+    the last pressure centre was."""
+    from comexp.backends.floor_friction import pressure_kernel
+
+    pts, a = footprint_samples(RECT, 400)
+    W = 1.962
+    wp = WinklerPressure(pts, a, W)
+    args = (wp._dx, wp._dy, a, W, wp._m)
+    for c_last, c in [((0.025, 0.0), (0.0252, 0.001)), ((-0.03, 0.012), (0.03, -0.012))]:
+        warm = np.full(3, np.nan)
+        pressure_kernel(*args, *c_last, warm)
+        assert not np.isnan(warm).any()  # beyond the kern: a tensionless solution to reuse
+        cold = pressure_kernel(*args, *c, np.full(3, np.nan))
+        hot = pressure_kernel(*args, *c, warm)
+        assert np.any(cold == 0.0)
+        assert np.abs(hot - cold).max() <= 1e-9 * W
+    inside = np.full(3, 1.0)
+    pressure_kernel(*args, 0.0, 0.0, inside)
+    assert np.isnan(inside[0])  # inside the kern: nothing to reuse (the flag)
+
+
+@pytest.mark.parametrize("speed", [0.04, 0.4])
+def test_the_push_solve_converges_to_the_tight_solvers_answer(speed):
+    """The constrained solve's start (the incoming twist) and its line search (backtracking to
+    the quadratic's minimiser) change the path, not the minimiser: a lever-arm push turns
+    within the Newton tolerance's own error of the same push solved to 1e-19 J. Bound: the
+    largest default-vs-tight difference on bench/planar_speed.py's 36 lever-arm pushes,
+    0.043 deg (l_shape, mu 1, 5 mm, 4 cm/s), with a 50% margin across CPUs; a solver that
+    stopped short or converged elsewhere turns by degrees."""
+    from comexp.experiment.objects import com_point, load_objects
+
+    od = load_objects(["l_shape"])["l_shape"]
+    spec = od.model(com_point(od, 0), izz_scale=1.0, mu_pusher=0.5)
+    scene = SceneSpec(FloorSpec(1.0, 1.0), spec)
+    x0 = np.asarray(spec.outline_m)[:, 0].min()
+    cmd = contact_push((x0, spec.com_m[1] + 0.005), (1.0, 0.0), 0.03, speed, 0.005)
+    turns = []
+    for planar in (FrictionSettings(), FrictionSettings(newton_tol=1e-19, max_newton=200)):
+        sim = PlanarSimulator(planar=planar)
+        sim.build(scene)
+        out = sim.push(cmd)
+        assert out.status == PushStatus.OK
+        turns.append(out.rotation_deg)
+    assert abs(turns[0]) > 5.0
+    assert turns[0] == pytest.approx(turns[1], abs=0.065)
