@@ -197,6 +197,14 @@ def minimise_kernel(
         if dec < tol:
             break
         t = 1.0
+        if k > 0.0:
+            # the pusher's friction |tau . xi - r0| has its kink where the contact sticks;
+            # beyond the smoothing its curvature vanishes, so a step that crosses the kink
+            # overshoots it by orders of magnitude: try landing on the kink first
+            r = tau[0] * xi[0] + tau[1] * xi[1] + tau[2] * xi[2] - r0
+            dr = tau[0] * step[0] + tau[1] * step[1] + tau[2] * step[2]
+            if abs(r) > eps and r * (r + dr) < 0.0:
+                t = -r / dr
         while t > 1e-12:
             for i in range(3):
                 trial[i] = xi[i] + t * step[i]
