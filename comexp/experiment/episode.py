@@ -18,6 +18,7 @@ from comexp.experiment.config import CameraConfig, EpisodeConfig
 from comexp.experiment.objects import object_model
 from comexp.experiment.simulator import Frame, Simulator, contact_push
 from comexp.method.estimator import EstimatorSettings, floor_force_direction, make_estimator
+from comexp.method.motion_estimator import PushPath
 from comexp.method.perception import (
     PerceptionError,
     PoseTracker,
@@ -221,6 +222,7 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
         true_prev = true0
         speed_m_s = spec.speed_cm_s / 100.0
         details: list[str] = []
+        path: list[tuple[float, Pose2D]] = []  # (t_s, pose) per tracked frame of a push (motion)
         for k in range(settings.n_push):
             choice = est.next_push()
             if choice is None:
@@ -237,6 +239,7 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                 scene.pusher.radius_m,
             )
             used = 0
+            path.clear()
             if tracker is not None and spec.camera_fps > 0:
                 tracker.begin_push()
 
@@ -249,6 +252,7 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                     except PerceptionError:
                         return  # a frame that shows no object is not used
                     tracker.track(view, f.t_s)
+                    path.append((f.t_s, tracker.last))
                     used += 1
 
                 out = sim.push(
@@ -291,6 +295,23 @@ def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
                 line = floor_force_direction(
                     N, frame.yaw_rad, spec.mu_floor_x, spec.mu_floor_y, spec.mu_pusher
                 )
+            # --- estimators that use the path of the push (`observe_path`, e.g. motion) ---
+            observe_path = getattr(est, "observe_path", None)
+            if observe_path is not None:
+                observe_path(
+                    PushPath(
+                        pose_before=frame,
+                        t_s=tuple(t for t, _ in path),
+                        poses=tuple(p for _, p in path),
+                        pose_after=new_frame,
+                        t_contact_s=float(np.hypot(*(frame.to_world(P) - cmd.start_xy_m)))
+                        / speed_m_s
+                        - scene.pusher.radius_m / speed_m_s,
+                        speed_m_s=speed_m_s,
+                        rotation_deg=rot,
+                    )
+                )
+            # ---
             decision = est.observe(P, N, rot, line)
             frame, true_prev = new_frame, true_now
             c_obj = frame_in_obj.to_world(P)
