@@ -210,3 +210,21 @@ def test_an_episode_passes_the_path() -> None:
     res = run_episode(spec, make_simulator("planar"))
     assert res.status == "ok", (res.failure, res.detail)
     assert any(p.decision.endswith("-path") for p in res.pushes)
+
+
+def test_running_sums_equal_the_batch_posterior() -> None:
+    """The estimator adds each push's terms to running sums: the same weights as computing
+    the posterior from all pushes at once."""
+    from comexp.method.estimator import region_from_outline
+    from comexp.method.motion_estimator import motion_posterior
+
+    rho2 = (0.1**2 + 0.06**2) / 12
+    pushes = synthetic((0.022, -0.011), rho2, True, net_sign=(1, -1, 1, 1, 1))
+    region = region_from_outline(BOX, PIXEL_M)
+    est = MotionEstimator(region, np.zeros((0, 2)), np.zeros((0, 2)), PIXEL_M)
+    for p in pushes:
+        P, N = p.in_object_frame()
+        est.observe_path(p.path())
+        est.observe(P, N, p.turn_deg())
+    batch = motion_posterior(est.points, est.footprint, est.features, est.motion)
+    assert np.allclose(est.weights, batch, rtol=1e-9, atol=1e-15)

@@ -227,21 +227,46 @@ def net_loglik(G: np.ndarray, footprint: np.ndarray, feats: list[PushFeatures], 
     return best
 
 
-def motion_posterior(
-    G: np.ndarray, footprint: np.ndarray, feats: list[PushFeatures], ms: MotionSettings
-) -> np.ndarray:
-    """Weights (n,) of candidate CoMs G: exp of the summed log-likelihoods, rho^2 profiled."""
-    foot = np.asarray(footprint, dtype=float)
+def _rho2_grid(foot: np.ndarray, ms: MotionSettings) -> np.ndarray:
     c = foot.mean(axis=0)
-    rho0 = ((foot - c) ** 2).sum(axis=1).mean()
-    ll = np.zeros(len(G))
-    if ms.use_early and any(f.early for f in feats):
-        rho2 = rho0 * np.asarray(ms.rho2_scales)
-        ll = ll + early_loglik(G, feats, rho2, ms).max(axis=1)
+    return ((foot - c) ** 2).sum(axis=1).mean() * np.asarray(ms.rho2_scales)
+
+
+def push_logliks(
+    G: np.ndarray, footprint: np.ndarray, feats: list[PushFeatures], ms: MotionSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-push terms summed over `feats`, before profiling: early frames (n, rho^2 grid),
+    impulse directions (n, mu_p grid), net-turn signs (n,). They add up push by push, so an
+    estimator keeps their running sums (`MotionEstimator`) and `motion_posterior` combines
+    them."""
+    foot = np.asarray(footprint, dtype=float)
+    rho2 = _rho2_grid(foot, ms)
+    mu = np.asarray(ms.mu_p_grid)
+    early = np.zeros((len(G), len(rho2)))
+    direction = np.zeros((len(G), len(mu)))
+    sign = np.zeros(len(G))
+    if ms.use_early:
+        early = early_loglik(G, feats, rho2, ms)
         if ms.use_direction:
-            ll = ll + direction_loglik(G, feats, np.asarray(ms.mu_p_grid), ms).max(axis=1)
+            direction = direction_loglik(G, feats, mu, ms)
     if ms.use_net:
-        ll = ll + sign_loglik(G, feats, ms)
+        sign = sign_loglik(G, feats, ms)
+    return early, direction, sign
+
+
+def motion_posterior(
+    G: np.ndarray,
+    footprint: np.ndarray,
+    feats: list[PushFeatures],
+    ms: MotionSettings,
+    sums: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Weights (n,) of candidate CoMs G: exp of the summed log-likelihoods, rho^2 and mu_p
+    profiled (the best per G, each shared by the episode's pushes). `sums`: `push_logliks`
+    of all of `feats`, if already at hand."""
+    foot = np.asarray(footprint, dtype=float)
+    early, direction, sign = sums if sums is not None else push_logliks(G, foot, feats, ms)
+    ll = early.max(axis=1) + direction.max(axis=1) + sign
     if ms.use_net_size:
         # two hypotheses about the net turns' sizes, weighed by their evidence: they follow
         # one gain (isotropic floors), or they say nothing (each uniform over the width)
@@ -302,6 +327,7 @@ class MotionEstimator:
             self.allowed = np.ones(len(self.contacts), dtype=bool)
         self.features: list[PushFeatures] = []
         self._path: PushPath | None = None
+        self._sums: tuple[np.ndarray, ...] | None = None  # running `push_logliks`
 
     @property
     def estimate_m(self) -> np.ndarray:
@@ -348,7 +374,15 @@ class MotionEstimator:
         f = push_features(self._path, contact_m, direction, rotation_deg, self.motion)
         self._path = None
         self.features.append(f)
-        self.weights = motion_posterior(self.points, self.footprint, self.features, self.motion)
+        new = push_logliks(self.points, self.footprint, [f], self.motion)
+        self._sums = (
+            new
+            if self._sums is None
+            else tuple(a + b for a, b in zip(self._sums, new, strict=True))
+        )
+        self.weights = motion_posterior(
+            self.points, self.footprint, self.features, self.motion, self._sums
+        )
         th = self.settings.theta_T_deg
         turn = "ccw" if rotation_deg > th else "cw" if rotation_deg < -th else "band"
         return f"{turn}-path" if f.early else turn
