@@ -162,6 +162,19 @@ def test_inputs_are_checked() -> None:
         MotionPush((0, 0), (1, 0), (0, 0, 0), (0.02, 0.01), ((0, 0, 0), (0, 0, 0)), (0, 0, 0), 0.0)
 
 
+def test_slow_pushes_use_no_early_frame() -> None:
+    """At 4 cm/s friction can stop the object within the first frame (mu g dt > v0 / 2 for
+    mu = 1): the frame is not used; at 40 cm/s it is."""
+    from comexp.method.motion_estimator import push_features
+
+    ms = MotionSettings()
+    for speed, used in ((0.4, True), (0.04, False)):
+        path = _one_push_path(math.radians(2))
+        path = PushPath(**{**path.__dict__, "speed_m_s": speed})
+        f = push_features(path, (-0.03, -0.03), (0.0, 1.0), 6.0, ms)
+        assert bool(f.early) is used
+
+
 def test_without_frames_only_the_net_turns_count() -> None:
     """No tracked frames (oracle, or camera.fps=0): the soft signs and sizes of the net turns
     still give an estimate; the decision says the path was not used."""

@@ -1,6 +1,21 @@
-"""`estimator.method=motion`: a CoM estimator that uses what the camera saw during each push.
+"""`estimator.method=motion`: a CoM estimator that uses what the camera saw during each push,
+knowing nothing of the floor's friction or axes, the pusher's friction or Izz.
 
-Placeholder header; see docs/method.md, "Beyond the paper: `estimator.method=motion`".
+A posterior over candidate CoMs G (the hull's points on a grid `SUBPIXEL` times finer than a
+pixel; no hard cut ever removes one) from, per push, in the object frame at its start:
+
+- the impulse relation at the first tracked frame after the impact: the impact's impulse J at
+  the contact P moves the CoM by d_G and turns the object by theta with theta rho^2 =
+  (P - G) x d_G (rho^2 = Izz / m, profiled per episode), before the floor's friction acts;
+- the impulse's direction: d_G within the pusher's friction cone about N (mu_p profiled);
+- the net turn's sign, soft (a wrong sign costs probability, not the CoM);
+- the net turns' sizes with `magnitude`'s one-gain model, weighed against "they say nothing"
+  by their evidence (they fit on isotropic floors, mostly not on anisotropic ones).
+
+Frames and signs as in `comexp.method.estimator` (metres, y up, CCW positive). In episodes
+`run_episode` passes each push's tracked poses (`PushPath`) to `observe_path`; a robot uses
+`estimate_com_motion` with `MotionPush`es in the world frame. docs/method.md, "Beyond the
+paper: `estimator.method=motion`", has the model, its assumptions and failure modes.
 """
 
 from __future__ import annotations
@@ -60,12 +75,20 @@ class PushPath:
 # the model
 
 
+G_ACC = 9.81  # m/s^2
+
+
 @dataclass(frozen=True)
 class MotionSettings:
     """Knobs of the motion estimator (docs/method.md, "`estimator.method=motion`")."""
 
     early_min_s: float = 0.003  # the first frame at least this long after the impact
     early_max_s: float = 0.060  # ... and at most this long (else the push has no early frame)
+    # ... and only while the floor's friction (at most impulse_mu_max g) can have taken at most
+    # impulse_share of the impact's speed: mu g dt <= share v0 (40 cm/s: 20 ms; 4 cm/s: 2 ms,
+    # i.e. no frame: quasi-static pushes are not impulsive). Unknown speed: no limit.
+    impulse_mu_max: float = 1.0
+    impulse_share: float = 0.5
     sigma_turn_deg: float = 0.3  # vision noise of a tracked frame's yaw
     sigma_move_m: float = 0.0005  # vision noise of a tracked frame's position
     rel_model: float = 0.3  # relative model error of the impulse relation
@@ -113,6 +136,9 @@ def push_features(path: PushPath | None, P, N, rotation_deg: float, ms: MotionSe
             if dt < ms.early_min_s:
                 continue
             if dt > ms.early_max_s or len(early) >= ms.max_frames:
+                break
+            v0 = path.speed_m_s
+            if math.isfinite(v0) and ms.impulse_mu_max * G_ACC * dt > ms.impulse_share * v0:
                 break
             early.append((float(dt), float(yaw), np.array([x, y])))
     return PushFeatures(P, N, math.radians(rotation_deg), tuple(early))
@@ -400,7 +426,9 @@ class MotionPush:
     since the push command started; a few frames within the first 60 ms after the impact are
     what the model uses), its pose at rest after, when the pusher reached the contact
     (`t_contact_s`) and the net turn if a tracker measured it unwrapped (`rotation_deg`, else
-    the yaw change along the path). Poses may be `Pose2D` or (x_m, y_m, yaw_rad) tuples."""
+    the yaw change along the path), and the pusher's speed (`speed_m_s`: frames too late for
+    the impact to dominate at that speed are not used; None: no such check). Poses may be
+    `Pose2D` or (x_m, y_m, yaw_rad) tuples."""
 
     contact_m: tuple[float, float]
     direction: tuple[float, float]
@@ -410,6 +438,7 @@ class MotionPush:
     pose_after: Pose2D
     t_contact_s: float
     rotation_deg: float | None = None
+    speed_m_s: float | None = None  # the pusher's; None: every early frame counts as impulsive
 
     def __post_init__(self) -> None:
         from comexp.method.estimator import _as_pose, _xy
@@ -436,7 +465,7 @@ class MotionPush:
             poses=self.poses,
             pose_after=self.pose_after,
             t_contact_s=float(self.t_contact_s),
-            speed_m_s=float("nan"),
+            speed_m_s=float("nan") if self.speed_m_s is None else float(self.speed_m_s),
             rotation_deg=self.rotation_deg,
         )
 
