@@ -105,12 +105,12 @@ def test_recovers_a_known_com_from_synthetic_pushes(G, stick) -> None:
 def test_a_reversed_net_turn_costs_probability_not_the_com(G) -> None:
     """Two of five net turns against the lever arm's sign (an anisotropic floor), frictionless
     pusher: the paper's cuts lose the CoM (26 - 41 mm), the motion estimator keeps it within
-    4.5 mm (measured 1.5 - 3.9 mm). With a sticking pusher it does not (4 - 16 mm measured):
-    docs/method.md, failure modes."""
+    9 mm (measured 2.4 - 8.2 mm). With a sticking pusher 4.7 - 16.9 mm (measured; not
+    asserted): docs/method.md, failure modes."""
     rho2 = (0.1**2 + 0.06**2) / 12
     pushes = synthetic(G, rho2, stick=False, net_sign=(1, -1, 1, -1, 1))
     res = estimate_com_motion(BOX, pushes, PIXEL_M)
-    assert np.linalg.norm(res.com_object_m - G) < 0.0045
+    assert np.linalg.norm(res.com_object_m - G) < 0.009
     from comexp.method.estimator import region_from_outline
 
     _, paper = estimate_com(region_from_outline(BOX, PIXEL_M), res.pushes, PIXEL_M)
@@ -206,7 +206,7 @@ def test_motion_is_a_built_in_method() -> None:
         estimate_com(
             region_from_outline(BOX, PIXEL_M), [], PIXEL_M, EstimatorSettings(method="motion")
         )
-    assert MotionSettings().net_prior == 0.1
+    assert MotionSettings().net_prior == 0.5
 
 
 def test_an_episode_passes_the_path() -> None:

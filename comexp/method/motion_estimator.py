@@ -102,7 +102,7 @@ class MotionSettings:
     net_noise_deg: float = 1.0
     net_rel_noise: float = 0.3
     net_outlier: float = 0.05
-    net_prior: float = 0.1
+    net_prior: float = 0.5
     net_outlier_width_deg: float = 60.0
     use_direction: bool = True
     direction_frames: int = 1
