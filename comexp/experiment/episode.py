@@ -28,6 +28,7 @@ from comexp.experiment.task import (
     push_command,
 )
 from comexp.method.estimator import EstimatorSettings, floor_force_direction, make_estimator
+from comexp.method.motion_estimator import PushPath
 from comexp.method.observation import (
     PerceptionError,
     mask_pusher,
@@ -85,6 +86,7 @@ class _EpisodeLoop:
         self.pushes: list[PushRecord] = []
         self.sim_time = 0.0
         self.details: list[str] = []
+        self.path: list[tuple[float, Pose2D]] = []  # (t_s, pose) per tracked frame of a push
 
     def failed(self, reason: str, detail: str = "") -> EpisodeResult:
         wall_s = time.perf_counter() - self.t0
@@ -142,6 +144,21 @@ class _EpisodeLoop:
             line = floor_force_direction(
                 N, self.frame.yaw_rad, spec.mu_floor_x, spec.mu_floor_y, spec.mu_pusher
             )
+        observe_path = getattr(self.est, "observe_path", None)
+        if observe_path is not None:  # estimators that use the path of the push (motion)
+            speed_m_s = spec.speed_cm_s / 100.0
+            approach_m = float(np.hypot(*(self.frame.to_world(P) - cmd.start_xy_m)))
+            observe_path(
+                PushPath(
+                    pose_before=self.frame,
+                    t_s=tuple(t for t, _ in self.path),
+                    poses=tuple(p for _, p in self.path),
+                    pose_after=new_frame,
+                    t_contact_s=(approach_m - self.scene.pusher.radius_m) / speed_m_s,
+                    speed_m_s=speed_m_s,
+                    rotation_deg=rot,
+                )
+            )
         decision = self.est.observe(P, N, rot, line)
         self.frame, self.true_prev = new_frame, true_now
         record = self.scoring.record(k, P, N, rot, rot_true, decision, self.est.region_px, used)
@@ -152,6 +169,7 @@ class _EpisodeLoop:
         """The push, with the tracker following it through camera frames when it watches
         (vision, `camera.fps` > 0); returns the outcome and the frames the tracker used."""
         tracker, settings = self.tracker, self.settings
+        self.path.clear()
         if tracker is None or not self.spec.camera_fps > 0:
             return self.sim.push(cmd), 0
         used = 0
@@ -166,6 +184,7 @@ class _EpisodeLoop:
             except PerceptionError:
                 return  # a frame that shows no object is not used
             tracker.track(view, f.t_s)
+            self.path.append((f.t_s, tracker.last))
             used += 1
 
         out = self.sim.push(

@@ -54,7 +54,7 @@ from comexp.method.scene import Pose2D, wrap_angle
 
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
-METHODS = ("paper", "magnitude")
+METHODS = ("paper", "magnitude", "motion")  # motion: comexp.method.motion_estimator
 # Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
 # squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
 # (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
@@ -464,9 +464,14 @@ def estimate_com(
     region (sign-consistent; on a grid `SUBPIXEL` times finer).
     """
     settings = settings or EstimatorSettings()
-    if settings.method not in METHODS:
+    if settings.method not in ("paper", "magnitude"):  # motion: estimate_com_motion
         raise ValueError(
-            f"estimate_com runs the built-in methods {METHODS}, not {settings.method!r}"
+            f"estimate_com runs the methods paper and magnitude, not {settings.method!r}"
+            + (
+                " (use comexp.method.motion_estimator.estimate_com_motion)"
+                if settings.method == "motion"
+                else ""
+            )
         )
     region = np.asarray(region_m, dtype=float)
     post = MagnitudePosterior(region, pixel_m, settings) if settings.method == "magnitude" else None
@@ -506,7 +511,7 @@ class ComEstimator:
         pusher_radius_m: float | None = None,
     ) -> None:
         self.settings = settings or EstimatorSettings()
-        if self.settings.method not in METHODS:  # never run a plug-in's episodes as the paper's
+        if self.settings.method not in ("paper", "magnitude"):  # never run others as the paper
             raise ValueError(f"method {self.settings.method!r} is a plug-in: use make_estimator")
         self.region = np.asarray(region_m, dtype=float)
         self.pixel_m = float(pixel_m)
@@ -823,6 +828,10 @@ def resolve_estimator(method: str) -> type:
     """The estimator class `method` names: `ComEstimator` for the built-in methods, else the
     plug-in `module:Class` / `module.Class`, imported; ValueError (one line, starting with
     `method`) when it cannot be imported or lacks the `Estimator` protocol."""
+    if method == "motion":  # the path of every push (docs/method.md, "estimator.method=motion")
+        from comexp.method.motion_estimator import MotionEstimator
+
+        return MotionEstimator
     if method in METHODS:
         return ComEstimator
     module, sep, name = method.partition(":")

@@ -1,0 +1,534 @@
+"""`estimator.method=motion`: a CoM estimator that uses what the camera saw during each push,
+knowing nothing of the floor's friction or axes, the pusher's friction or Izz.
+
+A posterior over candidate CoMs G (the hull's points on a grid `SUBPIXEL` times finer than a
+pixel; no hard cut ever removes one) from, per push, in the object frame at its start:
+
+- the impulse relation at the first tracked frame after the impact: the impact's impulse J at
+  the contact P moves the CoM by d_G and turns the object by theta with theta rho^2 =
+  (P - G) x d_G (rho^2 = Izz / m, profiled per episode), before the floor's friction acts;
+- the impulse's direction: d_G within the pusher's friction cone about N (mu_p profiled);
+- the net turn's sign, soft (a wrong sign costs probability, not the CoM);
+- the net turns' sizes with `magnitude`'s one-gain model, weighed against "they say nothing"
+  by their evidence (they fit on isotropic floors, mostly not on anisotropic ones).
+
+Frames and signs as in `comexp.method.estimator` (metres, y up, CCW positive). In episodes
+`run_episode` passes each push's tracked poses (`PushPath`) to `observe_path`; a robot uses
+`estimate_com_motion` with `MotionPush`es in the world frame. docs/method.md, "Beyond the
+paper: `estimator.method=motion`", has the model, its assumptions and failure modes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from comexp.method.estimator import (
+    SUBPIXEL,
+    EstimatorSettings,
+    choose_contact,
+    reachable_contacts,
+    refine_grid,
+    weighted_pca,
+)
+from comexp.method.scene import Pose2D
+
+
+@dataclass(frozen=True, eq=False)
+class PushPath:
+    """What a camera saw of one push, in the world frame (z up, yaw CCW about +z, metres,
+    radians, seconds): the object frame's pose before the push, its poses at the tracked frames
+    (`t_s` since the push command started), its pose at rest after the push, and the command:
+    when the pusher reaches the contact (`t_contact_s`) and its speed."""
+
+    pose_before: Pose2D
+    t_s: tuple[float, ...]
+    poses: tuple[Pose2D, ...]
+    pose_after: Pose2D
+    t_contact_s: float
+    speed_m_s: float
+    rotation_deg: float | None = None  # the unwrapped net turn, if the tracker gives it
+    extra: dict = field(default_factory=dict)
+
+    def relative(self) -> np.ndarray:
+        """(k + 2, 4): t, x, y, yaw of the object frame relative to its pose before the push
+        (in that pose's frame), for the start (t = 0), every frame and the rest pose (t = inf).
+        Yaws are unwrapped along the path."""
+        b = self.pose_before
+        rows = [(0.0, 0.0, 0.0, 0.0)]
+        yaw_prev = 0.0
+        for t, p in [*zip(self.t_s, self.poses, strict=True), (math.inf, self.pose_after)]:
+            xy = b.to_object(np.array([p.x_m, p.y_m]))
+            d = p.yaw_rad - b.yaw_rad
+            d = yaw_prev + (d - yaw_prev + math.pi) % (2 * math.pi) - math.pi
+            yaw_prev = d
+            rows.append((t, float(xy[0]), float(xy[1]), d))
+        out = np.array(rows)
+        if self.rotation_deg is not None:
+            out[-1, 3] = math.radians(self.rotation_deg)
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# the model
+
+
+G_ACC = 9.81  # m/s^2
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    """Knobs of the motion estimator (docs/method.md, "`estimator.method=motion`")."""
+
+    early_min_s: float = 0.003  # the first frame at least this long after the impact
+    early_max_s: float = 0.060  # ... and at most this long (else the push has no early frame)
+    # ... and only while the floor's friction (at most impulse_mu_max g) can have taken at most
+    # impulse_share of the impact's speed: mu g dt <= share v0 (40 cm/s: 20 ms; 4 cm/s: 2 ms,
+    # i.e. no frame: quasi-static pushes are not impulsive). Unknown speed: no limit.
+    impulse_mu_max: float = 1.0
+    impulse_share: float = 0.5
+    sigma_turn_deg: float = 0.3  # vision noise of a tracked frame's yaw
+    sigma_move_m: float = 0.0005  # vision noise of a tracked frame's position
+    rel_model: float = 0.3  # relative model error of the impulse relation
+    rel_model_rate: float = 0.0  # ... growing by this much per second after the impact
+    max_frames: int = 1
+    sign_eps: float = 0.15  # chance that a net turn has the wrong sign (floor, vision)
+    sign_scale_m: float = 0.002  # lever arm over which a net turn's sign becomes certain
+    sign_deg: float = 1.0  # net turns at most this large say nothing about the sign
+    use_early: bool = True
+    use_net_size: bool = True
+    net_noise_deg: float = 1.0
+    net_rel_noise: float = 0.3
+    net_outlier: float = 0.05
+    net_prior: float = 0.5
+    net_outlier_width_deg: float = 60.0
+    use_direction: bool = True
+    direction_frames: int = 1
+    # the pusher's friction mu_p, profiled: the impulse lies within atan(mu_p) of the push
+    mu_p_grid: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
+    use_net: bool = True
+    # rho^2 = Izz / m about the CoM, profiled on this grid times the hull's own rho0^2
+    rho2_scales: tuple[float, ...] = (0.3, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0, 4.5, 7.0, 10.0, 15.0)
+
+
+@dataclass(frozen=True)
+class PushFeatures:
+    """What the likelihood uses of one push, in the object frame at the push's start."""
+
+    P: np.ndarray  # contact (2,)
+    N: np.ndarray  # unit push direction (2,)
+    turn_net_rad: float
+    # (time since the impact, yaw, origin displacement (2,)) of the frames used, earliest first
+    early: tuple[tuple[float, float, np.ndarray], ...]
+
+
+def push_features(path: PushPath | None, P, N, rotation_deg: float, ms: MotionSettings):
+    P = np.asarray(P, dtype=float)
+    N = np.asarray(N, dtype=float)
+    N = N / np.linalg.norm(N)
+    early = []
+    if path is not None and len(path.t_s):
+        rel = path.relative()
+        for t, x, y, yaw in rel[1:-1]:
+            dt = t - path.t_contact_s
+            if dt < ms.early_min_s:
+                continue
+            if dt > ms.early_max_s or len(early) >= ms.max_frames:
+                break
+            v0 = path.speed_m_s
+            if math.isfinite(v0) and ms.impulse_mu_max * G_ACC * dt > ms.impulse_share * v0:
+                break
+            early.append((float(dt), float(yaw), np.array([x, y])))
+    return PushFeatures(P, N, math.radians(rotation_deg), tuple(early))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def early_loglik(
+    G: np.ndarray, feats: list[PushFeatures], rho2: np.ndarray, ms: MotionSettings
+) -> np.ndarray:
+    """log-likelihood (n, len(rho2)) of the early frames under the impulse relation.
+
+    An impulse J at P (the pusher's impact; the floor's friction is finite, so it plays no part
+    within it) gives the CoM the velocity J / m and the object the turn rate (P - G) x J / Izz:
+    over the first instants the turn theta and the CoM's displacement d_G obey
+    theta rho^2 = (P - G) x d_G, rho^2 = Izz / m, whatever the pusher's friction (it only tilts
+    J) and the floor's. d_G follows from the tracked origin's displacement d_O and the turn:
+    d_G = d_O + (R(theta) - I) G.
+    """
+    out = np.zeros((len(G), len(rho2)))
+    s_th = math.radians(ms.sigma_turn_deg)
+    for f in feats:
+        for dt, th, dO in f.early:
+            rel = ms.rel_model + ms.rel_model_rate * dt
+            c, s = math.cos(th), math.sin(th)
+            dG = dO[None, :] + np.stack(
+                [(c - 1) * G[:, 0] - s * G[:, 1], s * G[:, 0] + (c - 1) * G[:, 1]], 1
+            )
+            r = f.P[None, :] - G
+            m = _cross(r, dG)  # (n,)
+            e = th * rho2[None, :] - m[:, None]
+            var = (
+                (s_th * rho2[None, :]) ** 2
+                + (ms.sigma_move_m * np.linalg.norm(r, axis=1))[:, None] ** 2
+                + (rel * m[:, None]) ** 2
+            )
+            out += -0.5 * e * e / var - 0.5 * np.log(var)
+    return out
+
+
+def direction_loglik(G: np.ndarray, feats: list[PushFeatures], mu: np.ndarray, ms: MotionSettings):
+    """log-likelihood (n, len(mu)) of the directions in which the early frames moved the CoM:
+    the impulse, hence d_G, lies within the pusher's friction cone about N, |tan psi| <= mu_p
+    (uniform inside, the vision noise smearing its edges)."""
+    from scipy.special import ndtr
+
+    out = np.zeros((len(G), len(mu)))
+    for f in feats:
+        for _dt, th, dO in f.early[: ms.direction_frames]:
+            c, s = math.cos(th), math.sin(th)
+            dG = dO[None, :] + np.stack(
+                [(c - 1) * G[:, 0] - s * G[:, 1], s * G[:, 0] + (c - 1) * G[:, 1]], 1
+            )
+            a = dG @ f.N
+            b = _cross(f.N[None, :], dG)  # tangential component (left of N)
+            sig = ms.sigma_move_m
+            # in displacement units: b uniform in [-mu a, mu a] with noise sig; a must be > 0
+            hi = (mu[None, :] * np.abs(a)[:, None] - b[:, None]) / sig
+            lo = (-mu[None, :] * np.abs(a)[:, None] - b[:, None]) / sig
+            width = 2 * mu[None, :] * np.abs(a)[:, None] + 1e-12
+            p = (ndtr(hi) - ndtr(lo)) / np.maximum(width, sig)
+            p = p * ndtr(a / sig)[:, None]
+            out += np.log(p + 1e-12)
+    return out
+
+
+def sign_loglik(G: np.ndarray, feats: list[PushFeatures], ms: MotionSettings) -> np.ndarray:
+    """log-likelihood (n,) of the net turns' signs: a soft version of Algorithm 2's cut, with a
+    chance `sign_eps` that the sign is wrong (the floor turned it, or vision)."""
+    from scipy.special import ndtr
+
+    out = np.zeros(len(G))
+    for f in feats:
+        if abs(math.degrees(f.turn_net_rad)) <= ms.sign_deg:
+            continue
+        lev = _cross(f.P[None, :] - G, f.N[None, :])
+        p = ms.sign_eps + (1 - 2 * ms.sign_eps) * ndtr(
+            np.sign(f.turn_net_rad) * lev / ms.sign_scale_m
+        )
+        out += np.log(p)
+    return out
+
+
+def net_loglik(G: np.ndarray, footprint: np.ndarray, feats: list[PushFeatures], ms: MotionSettings):
+    """log-likelihood (n,) of the net turns' sizes: `magnitude`'s model rot_j = k f(l_j) (one
+    gain per episode, saturation profiled), with a chance `net_outlier` that a turn is
+    unrelated to its lever (the floor turned it), so that no push can rule a CoM out."""
+    from comexp.method.estimator import SATURATION_BETAS, lever_arms
+
+    rot = np.array([math.degrees(f.turn_net_rad) for f in feats])
+    if len(rot) < 2:
+        return np.zeros(len(G))
+    P = np.array([f.P for f in feats])
+    N = np.array([f.N for f in feats])
+    foot = np.asarray(footprint, dtype=float)
+    c = foot.mean(axis=0)
+    rho2 = ((foot - c) ** 2).sum(axis=1).mean() + ((G - c) ** 2).sum(axis=1)
+    lev = lever_arms(G, P, N)
+    var = ms.net_noise_deg**2 + (ms.net_rel_noise * rot) ** 2
+    w = 1.0 / var
+    best = np.full(len(G), -np.inf)
+    for beta in SATURATION_BETAS:
+        f = lev if math.isinf(beta) else lev / (1.0 + lev * lev / (beta * rho2[:, None]))
+        k = (w * rot * f).sum(axis=1) / np.maximum((w * f * f).sum(axis=1), 1e-300)
+        k = np.maximum(k, 0.0)
+        r2 = (rot - k[:, None] * f) ** 2 / var
+        inlier = (1 - ms.net_outlier) * np.exp(-0.5 * r2) / np.sqrt(2 * np.pi * var)
+        ll = np.log(inlier + ms.net_outlier / ms.net_outlier_width_deg).sum(axis=1)
+        best = np.maximum(best, ll)
+    return best
+
+
+def _rho2_grid(foot: np.ndarray, ms: MotionSettings) -> np.ndarray:
+    c = foot.mean(axis=0)
+    return ((foot - c) ** 2).sum(axis=1).mean() * np.asarray(ms.rho2_scales)
+
+
+def push_logliks(
+    G: np.ndarray, footprint: np.ndarray, feats: list[PushFeatures], ms: MotionSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-push terms summed over `feats`, before profiling: early frames (n, rho^2 grid),
+    impulse directions (n, mu_p grid), net-turn signs (n,). They add up push by push, so an
+    estimator keeps their running sums (`MotionEstimator`) and `motion_posterior` combines
+    them."""
+    foot = np.asarray(footprint, dtype=float)
+    rho2 = _rho2_grid(foot, ms)
+    mu = np.asarray(ms.mu_p_grid)
+    early = np.zeros((len(G), len(rho2)))
+    direction = np.zeros((len(G), len(mu)))
+    sign = np.zeros(len(G))
+    if ms.use_early:
+        early = early_loglik(G, feats, rho2, ms)
+        if ms.use_direction:
+            direction = direction_loglik(G, feats, mu, ms)
+    if ms.use_net:
+        sign = sign_loglik(G, feats, ms)
+    return early, direction, sign
+
+
+def motion_posterior(
+    G: np.ndarray,
+    footprint: np.ndarray,
+    feats: list[PushFeatures],
+    ms: MotionSettings,
+    sums: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Weights (n,) of candidate CoMs G: exp of the summed log-likelihoods, rho^2 and mu_p
+    profiled (the best per G, each shared by the episode's pushes). `sums`: `push_logliks`
+    of all of `feats`, if already at hand."""
+    foot = np.asarray(footprint, dtype=float)
+    early, direction, sign = sums if sums is not None else push_logliks(G, foot, feats, ms)
+    ll = early.max(axis=1) + direction.max(axis=1) + sign
+    if ms.use_net_size:
+        # two hypotheses about the net turns' sizes, weighed by their evidence: they follow
+        # one gain (isotropic floors), or they say nothing (each uniform over the width)
+        h1 = net_loglik(G, foot, feats, ms)
+        h0 = len(feats) * math.log(1.0 / ms.net_outlier_width_deg) if len(feats) >= 2 else 0.0
+        ll = ll + np.logaddexp(math.log(ms.net_prior) + h1, math.log(1 - ms.net_prior) + h0)
+    p = np.exp(ll - ll.max())
+    return p / p.sum()
+
+
+# ----------------------------------------------------------------------------------------------
+# the estimator (the `Estimator` protocol of comexp.method.estimator)
+
+CREDIBLE = 0.95  # the posterior mass whose points count as the region (pushes must cut it)
+MAX_REGION_POINTS = 1500  # Algorithm 1's validity test runs on at most this many of them
+
+
+def credible_set(weights: np.ndarray, mass: float = CREDIBLE) -> np.ndarray:
+    """Indices of the fewest points holding `mass` of the weights (highest first)."""
+    order = np.argsort(weights)[::-1]
+    k = int(np.searchsorted(np.cumsum(weights[order]), mass * weights.sum())) + 1
+    return order[: max(1, min(k, len(order)))]
+
+
+class MotionEstimator:
+    """`estimator.method=motion`: a posterior over candidate CoMs (the hull's points on a grid
+    `SUBPIXEL` times finer than a pixel) from the path of every push (`observe_path`, then
+    `observe`), no hard cuts. Algorithm 1 chooses the pushes against the posterior: a push is
+    valid when its line cuts the 95% credible set, scored against the posterior's mean and
+    main axis. Without a path (oracle rotations, no frames) a push adds its net turn's soft
+    sign only. Frames and units are `ComEstimator`'s."""
+
+    def __init__(
+        self,
+        region_m: np.ndarray,
+        contacts_m: np.ndarray,
+        normals: np.ndarray,
+        pixel_m: float,
+        settings: EstimatorSettings | None = None,
+        outline_m: np.ndarray | None = None,
+        pusher_radius_m: float | None = None,
+        motion: MotionSettings | None = None,
+    ) -> None:
+        self.settings = settings or EstimatorSettings(method="motion")
+        self.motion = motion or MotionSettings()
+        self.pixel_m = float(pixel_m)
+        self.footprint = np.asarray(region_m, dtype=float).reshape(-1, 2)
+        self.points = refine_grid(self.footprint, self.pixel_m)
+        self.weights = np.full(len(self.points), 1.0 / max(len(self.points), 1))
+        self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
+        n = np.asarray(normals, dtype=float).reshape(-1, 2)
+        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+        if self.settings.check_reachability and outline_m is not None and pusher_radius_m:
+            self.allowed = reachable_contacts(
+                outline_m, self.contacts, self.normals, pusher_radius_m
+            )
+        else:
+            self.allowed = np.ones(len(self.contacts), dtype=bool)
+        self.features: list[PushFeatures] = []
+        self._path: PushPath | None = None
+        self._sums: tuple[np.ndarray, ...] | None = None  # running `push_logliks`
+
+    @property
+    def estimate_m(self) -> np.ndarray:
+        return self.weights @ self.points
+
+    @property
+    def region_px(self) -> int:
+        """The 95% credible set's size in pixels (fine points / SUBPIXEL^2)."""
+        return max(1, round(len(credible_set(self.weights)) / SUBPIXEL**2))
+
+    def region(self) -> np.ndarray:
+        """The 95% credible set's points (at most `MAX_REGION_POINTS`, evenly thinned)."""
+        idx = np.sort(credible_set(self.weights))
+        step = max(1, math.ceil(len(idx) / MAX_REGION_POINTS))
+        return self.points[idx[::step]]
+
+    def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
+        c, V, _ = weighted_pca(self.points, self.weights, self.pixel_m / SUBPIXEL)
+        j = choose_contact(
+            self.region(),
+            self.contacts,
+            self.normals,
+            self.settings,
+            self.pixel_m,
+            self.allowed,
+            (c, V),
+        )
+        if j is None:
+            return None
+        return self.contacts[j].copy(), self.normals[j].copy()
+
+    def observe_path(self, path: PushPath) -> None:
+        """What the camera saw of the coming `observe`'s push (world frame)."""
+        self._path = path
+
+    def observe(
+        self,
+        contact_m: np.ndarray,
+        direction: np.ndarray,
+        rotation_deg: float,
+        line_direction: np.ndarray | None = None,
+    ) -> str:
+        """Add a push (object frame; `line_direction` is ignored: the floor is unknown)."""
+        f = push_features(self._path, contact_m, direction, rotation_deg, self.motion)
+        self._path = None
+        self.features.append(f)
+        new = push_logliks(self.points, self.footprint, [f], self.motion)
+        self._sums = (
+            new
+            if self._sums is None
+            else tuple(a + b for a, b in zip(self._sums, new, strict=True))
+        )
+        self.weights = motion_posterior(
+            self.points, self.footprint, self.features, self.motion, self._sums
+        )
+        th = self.settings.theta_T_deg
+        turn = "ccw" if rotation_deg > th else "cw" if rotation_deg < -th else "band"
+        return f"{turn}-path" if f.early else turn
+
+
+# ----------------------------------------------------------------------------------------------
+# the real-robot path: poses over time per push, world frame, no simulator (docs/real_robot.md)
+
+
+@dataclass(frozen=True, eq=False)
+class MotionPush:
+    """One push as a robot observes it, world frame (z up, yaw CCW about +z; m, rad, s): the
+    contact point and push direction (inward normal; normalised here), and the path: the
+    object frame's pose before the push, its poses at the camera's frames during it (`t_s`
+    since the push command started; a few frames within the first 60 ms after the impact are
+    what the model uses), its pose at rest after, when the pusher reached the contact
+    (`t_contact_s`) and the net turn if a tracker measured it unwrapped (`rotation_deg`, else
+    the yaw change along the path), and the pusher's speed (`speed_m_s`: frames too late for
+    the impact to dominate at that speed are not used; None: no such check). Poses may be
+    `Pose2D` or (x_m, y_m, yaw_rad) tuples."""
+
+    contact_m: tuple[float, float]
+    direction: tuple[float, float]
+    pose_before: Pose2D
+    t_s: tuple[float, ...]
+    poses: tuple[Pose2D, ...]
+    pose_after: Pose2D
+    t_contact_s: float
+    rotation_deg: float | None = None
+    speed_m_s: float | None = None  # the pusher's; None: every early frame counts as impulsive
+
+    def __post_init__(self) -> None:
+        from comexp.method.estimator import _as_pose, _xy
+
+        set_ = object.__setattr__
+        set_(self, "contact_m", _xy(self.contact_m))
+        d = np.asarray(_xy(self.direction))
+        if np.linalg.norm(d) == 0:
+            raise ValueError("direction must be a non-zero vector")
+        set_(self, "direction", _xy(d / np.linalg.norm(d)))
+        set_(self, "pose_before", _as_pose(self.pose_before))
+        set_(self, "pose_after", _as_pose(self.pose_after))
+        set_(self, "poses", tuple(_as_pose(p) for p in self.poses))
+        set_(self, "t_s", tuple(float(t) for t in self.t_s))
+        if len(self.t_s) != len(self.poses):
+            raise ValueError(f"{len(self.t_s)} times for {len(self.poses)} poses")
+        if any(b <= a for a, b in zip(self.t_s, self.t_s[1:], strict=False)):
+            raise ValueError("t_s must increase")
+
+    def path(self) -> PushPath:
+        return PushPath(
+            pose_before=self.pose_before,
+            t_s=self.t_s,
+            poses=self.poses,
+            pose_after=self.pose_after,
+            t_contact_s=float(self.t_contact_s),
+            speed_m_s=float("nan") if self.speed_m_s is None else float(self.speed_m_s),
+            rotation_deg=self.rotation_deg,
+        )
+
+    def turn_deg(self) -> float:
+        """The net CCW turn: measured, or the yaw change along the path (unwrapped)."""
+        if self.rotation_deg is not None:
+            return float(self.rotation_deg)
+        return math.degrees(float(self.path().relative()[-1, 3]))
+
+    def in_object_frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """(contact, direction) in the object frame at the pose before the push."""
+        yaw = self.pose_before.yaw_rad
+        P = self.pose_before.to_object(np.asarray(self.contact_m))
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = self.direction
+        return P, np.array([c * dx + s * dy, -s * dx + c * dy])
+
+
+def estimate_com_motion(
+    outline_m: np.ndarray,
+    pushes: list[MotionPush] | tuple[MotionPush, ...],
+    pixel_m: float,
+    motion: MotionSettings | None = None,
+):
+    """The motion estimator on observed pushes: returns a `comexp.estimator.WorldEstimate`
+    (`region_m` = the 95% credible set, `pushes` = the pushes as `ObservedPush`es in the object
+    frame). `outline_m` is the footprint in the object frame, centred on its area centroid, as
+    for `estimate_com_world`; each push is mapped into the object frame with its own pose
+    before the push, and its path is read relative to that pose."""
+    from comexp.method.estimator import (
+        OUTLINE_CENTRED_TOL_M,
+        ObservedPush,
+        WorldEstimate,
+        region_from_outline,
+    )
+    from comexp.method.geometry import centroid
+
+    outline = np.asarray(outline_m, dtype=float)
+    c = centroid(outline)
+    if np.hypot(*c) > OUTLINE_CENTRED_TOL_M:
+        raise ValueError(
+            f"outline_m: its centroid is at ({c[0]:.4f}, {c[1]:.4f}) m, not at the origin: "
+            "pass outline_m - centroid, and poses of the centroid"
+        )
+    pushes = list(pushes)
+    if not pushes:
+        raise ValueError("estimate_com_motion needs at least one push (its pose fixes the frame)")
+    region0 = region_from_outline(outline, pixel_m)
+    est = MotionEstimator(region0, np.zeros((0, 2)), np.zeros((0, 2)), pixel_m, motion=motion)
+    local = []
+    for push in pushes:
+        P, N = push.in_object_frame()
+        est.observe_path(push.path())
+        est.observe(P, N, push.turn_deg())
+        local.append(
+            ObservedPush((float(P[0]), float(P[1])), (float(N[0]), float(N[1])), push.turn_deg())
+        )
+    com = est.estimate_m
+    first = pushes[0].pose_before
+    return WorldEstimate(
+        com_object_m=com,
+        com_world_m=first.to_world(com),
+        first_pose=first,
+        region_m=est.region(),
+        pushes=tuple(local),
+    )
