@@ -162,9 +162,9 @@ def test_a_hang_inside_c_code_ends_the_worker_process() -> None:
 
 
 def test_episode_timeout_is_validated(tmp_path: Path) -> None:
-    from test_cli import comexp
+    from test_cli import comexp_in_process
 
-    r = comexp(tmp_path, "execution.episode_timeout_s=0", "db=results/x.db")
+    r = comexp_in_process(tmp_path, "execution.episode_timeout_s=0", "db=results/x.db")
     assert r.returncode == 2 and "execution.episode_timeout_s" in r.stderr
     assert list(tmp_path.iterdir()) == []
 
