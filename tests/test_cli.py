@@ -1,6 +1,12 @@
-"""The `comexp` command in a subprocess, as users run it: the installed config tree from any
-directory, one-line errors that write nothing, runs with a fake runner (no physics) that
-store, resume and survive Ctrl-C, and the two example commands of the brief.
+"""The `comexp` command as users run it: the installed config tree from any directory,
+one-line errors that write nothing, runs with a fake runner (no physics) that store, resume
+and survive Ctrl-C, and the two example commands of the brief.
+
+The installed script runs in a child process where the process matters (--help and --cfg,
+a bad run and multirun, Ctrl-C, joining a cluster); the other cases call the script's own
+`main()` in this process (`comexp_in_process`), the jobs on one local Ray for the module
+(`local_ray`, as a multirun's jobs share one), which saves each case its Python and Hydra
+imports and its Ray start.
 """
 
 from __future__ import annotations
@@ -71,10 +77,10 @@ class Ran:
 def comexp_in_process(cwd: Path, *args: str, **env: str) -> Ran:
     """`comexp ARGS` through the console script's own `main()` in this process: the same
     argument parsing, Hydra composition, validation callback and one-line error reporting,
-    without the ~2 s of Python and Hydra imports a child process pays. For cases that fail
-    (or print) before any job runs; the console script itself is run in a child process by
-    the tests marked "through the console script" below. Everything `main` touches is put
-    back: cwd, argv, environment, Hydra's global state, the root logger, the record factory.
+    without the ~2 s of Python and Hydra imports a child process pays. A job that runs uses
+    the Ray this process has started (the `local_ray` fixture), else starts one. Everything
+    `main` touches is put back: cwd, argv, environment, Hydra's global state, the root
+    logger, the record factory.
     """
     from hydra.core.global_hydra import GlobalHydra
 
@@ -349,7 +355,7 @@ def _pids_naming(needle: str) -> list[int]:
 # --- runs with a fake runner ---------------------------------------------------------------------
 
 
-def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
+def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path, local_ray) -> None:
     conf = tmp_path / "myconf" / "object"
     conf.mkdir(parents=True)
     (conf / "my_tri.yaml").write_text("outline_cm: [[0, 0], [9, 0], [0, 6]]\nheight_cm: 2\n")
@@ -365,7 +371,7 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
         "pusher.mu=[1.0]",
         "db=results/t.db",
     ]
-    r = comexp(tmp_path, *args, "grid.coms_per_object=2", **FAKE)
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=2", **FAKE)
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "t.db"
     assert rows(db, "select object, count(*) from episodes group by object") == [
@@ -375,31 +381,33 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
     summaries = list((tmp_path / "results" / "runs").glob("*/summary.md"))
     assert len(summaries) == 1 and "my_tri" in summaries[0].read_text()
     # rerun with one more CoM per object: only the 2 new episodes run
-    r = comexp(tmp_path, *args, "grid.coms_per_object=3")
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3")
     assert r.returncode == 0, r.stderr
     assert "4 already stored, 2 to run" in r.stdout + r.stderr, r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct sweep_id) from episodes") == [(6, 2)]
     assert rows(db, "select count(*) from sweeps") == [(2,)]
     # nothing left to do: no new sweep, no Ray
-    r = comexp(tmp_path, *args, "grid.coms_per_object=3")
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3")
     assert r.returncode == 0 and "all 6 episodes already stored" in r.stdout
     assert rows(db, "select count(*) from sweeps") == [(2,)]
 
 
-def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path) -> None:
+def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path, local_ray) -> None:
     """`estimator.method` on the command line is the episodes' estimator (and their identity):
     the two methods on the same grid are two sets of episodes, told apart in the database."""
     args = [*SMALL, "floor.mu=[1.0]", "grid.objects=[rect_8x5]", "db=results/m.db"]
     for method in ("magnitude", "paper"):
-        r = comexp(tmp_path, *args, f"estimator.method={method}", **FAKE)
+        r = comexp_in_process(tmp_path, *args, f"estimator.method={method}", **FAKE)
         assert r.returncode == 0, r.stderr
         assert "0 already stored" in r.stdout + r.stderr, r.stdout + r.stderr
     got = rows(tmp_path / "results" / "m.db", "select estimator from episodes order by id")
     assert [json.loads(e)["method"] for (e,) in got] == ["magnitude", "paper"]
 
 
-def test_aniso_multirun_example(tmp_path: Path) -> None:
-    r = comexp(tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", **FAKE)
+def test_aniso_multirun_example(tmp_path: Path, local_ray) -> None:
+    r = comexp_in_process(
+        tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", **FAKE
+    )
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "a.db"
     got = rows(
@@ -418,7 +426,7 @@ def test_aniso_multirun_example(tmp_path: Path) -> None:
     assert len(jobs) == 2 and "speed40" in jobs[0] and "speed4.0" in jobs[1]
 
 
-def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
+def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path, local_ray) -> None:
     args = [*SMALL, "floor.mu=[1.0]", "db=results/i.db", "execution.batch_size=2"]
     proc = subprocess.Popen(
         [*_command(), *args],
@@ -450,7 +458,7 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
     assert "interrupted" in err and "Traceback" not in err
     kept = rows(db, "select count(*) from episodes")[0][0]
     assert 4 <= kept < 20  # what finished was stored, before the end
-    r = comexp(tmp_path, *args, **FAKE)
+    r = comexp_in_process(tmp_path, *args, **FAKE)
     assert r.returncode == 0, r.stderr
     assert f"{kept} already stored, {20 - kept} to run" in r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct object) from episodes") == [(20, 20)]
@@ -480,12 +488,12 @@ def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
     assert mean_err < 3.0  # cm: an estimator that works at all beats the footprint size
 
 
-def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path) -> None:
+def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path, local_ray) -> None:
     """`backend=planar` behind the same command line: real physics, perception and estimator,
     stored with the planar physics identity."""
     from comexp.results.store import ResultsDB
 
-    r = comexp(
+    r = comexp_in_process(
         tmp_path,
         "backend=planar",
         "grid.objects=[rect_8x5]",
