@@ -1,11 +1,20 @@
-"""The `comexp` command in a subprocess, as users run it: the installed config tree from any
-directory, one-line errors that write nothing, runs with a fake runner (no physics) that
-store, resume and survive Ctrl-C, and the two example commands of the brief.
+"""The `comexp` command as users run it: the installed config tree from any directory,
+one-line errors that write nothing, runs with a fake runner (no physics) that store, resume
+and survive Ctrl-C, and the two example commands of the brief.
+
+The installed script runs in a child process where the process matters (--help and --cfg,
+a bad run and multirun, Ctrl-C, joining a cluster); the other cases call the script's own
+`main()` in this process (`comexp_in_process`), the jobs on one local Ray for the module
+(`local_ray`, as a multirun's jobs share one), which saves each case its Python and Hydra
+imports and its Ray start.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import logging
 import os
 import shutil
 import signal
@@ -15,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -55,6 +65,56 @@ def comexp(cwd: Path, *args: str, timeout: float = 300, **env: str):
     )
 
 
+@dataclass
+class Ran:
+    """What `comexp_in_process` saw: the fields of `subprocess.CompletedProcess` tests read."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def comexp_in_process(cwd: Path, *args: str, **env: str) -> Ran:
+    """`comexp ARGS` through the console script's own `main()` in this process: the same
+    argument parsing, Hydra composition, validation callback and one-line error reporting,
+    without the ~2 s of Python and Hydra imports a child process pays. A job that runs uses
+    the Ray this process has started (the `local_ray` fixture), else starts one. Everything
+    `main` touches is put back: cwd, argv, environment, Hydra's global state, the root
+    logger, the record factory.
+    """
+    from hydra.core.global_hydra import GlobalHydra
+
+    import comexp.cli.run as cli
+
+    out, err = io.StringIO(), io.StringIO()
+    root = logging.getLogger()
+    saved = (os.getcwd(), sys.argv[:], dict(os.environ), root.handlers[:], root.level)
+    factory = logging.getLogRecordFactory()
+    os.environ.update(_env(**env))
+    for k in [k for k in os.environ if k not in _env(**env)]:  # what _env leaves out
+        del os.environ[k]
+    sys.argv = ["comexp", *args]
+    os.chdir(cwd)
+    code = 0
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                cli.main()
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+    finally:
+        cwd0, sys.argv, env0, handlers, level = saved
+        os.chdir(cwd0)
+        os.environ.clear()
+        os.environ.update(env0)
+        root.handlers[:] = handlers
+        root.setLevel(level)
+        logging.setLogRecordFactory(factory)
+        cli._show_jobs = None
+        GlobalHydra.instance().clear()
+    return Ran(code, out.getvalue(), err.getvalue())
+
+
 def rows(db: Path, sql: str) -> list[tuple]:
     with sqlite3.connect(db) as c:
         return c.execute(sql).fetchall()
@@ -79,38 +139,50 @@ def test_help_and_cfg_work_from_any_directory(tmp_path: Path) -> None:
 # --- bad input: one line, non-zero exit, nothing written ----------------------------------------
 
 
-@pytest.mark.parametrize(
-    ("args", "needle"),
-    [
-        (["speed=-4"], "speed"),
-        (["speed=abc"], "speed"),
-        (["floor.mu=[-0.1]"], "floor.mu"),
-        (["pusher.mu=[-1]"], "pusher.mu"),
-        (["grid.objects=[no_such_object]"], "no_such_object"),
-        (["grid.coms_per_object=0"], "grid.coms_per_object"),
-        (["estimator.theta_T=-1"], "estimator.theta_T"),
-        (["estimator.method=bayes"], "estimator.method"),
-        (["db=/proc/comexp/results.db"], "db"),
-        (["backend=bullet3"], "backend"),
-        (["floor=wood"], "floor"),
-        (["-m", "speed=40,-4"], "speed"),
-        (["-m", "backend=pybullet,bullet3"], "backend"),
-        (["ray.address=127.0.0.9:9"], "ray.address: cannot reach 127.0.0.9:9"),
-        (["-m", "speed=40,4", "ray.address=127.0.0.9:9"], "127.0.0.9:9"),
-        (["ray.address=ray://127.0.0.9:10001"], "ray.address"),
-        (["ray.address=head-without-port"], "ray.address"),
-    ],
-)
-def test_bad_input_is_one_line_and_writes_nothing(
-    tmp_path: Path, args: list[str], needle: str
-) -> None:
-    r = comexp(tmp_path, *args, "db=results/x.db" if "db=" not in args[0] else "seed=0")
+BAD_INPUT = [
+    (["speed=-4"], "speed"),
+    (["speed=abc"], "speed"),
+    (["floor.mu=[-0.1]"], "floor.mu"),
+    (["pusher.mu=[-1]"], "pusher.mu"),
+    (["grid.objects=[no_such_object]"], "no_such_object"),
+    (["grid.coms_per_object=0"], "grid.coms_per_object"),
+    (["estimator.theta_T=-1"], "estimator.theta_T"),
+    (["estimator.method=bayes"], "estimator.method"),
+    (["db=/proc/comexp/results.db"], "db"),
+    (["backend=bullet3"], "backend"),
+    (["floor=wood"], "floor"),
+    (["-m", "speed=40,-4"], "speed"),
+    (["-m", "backend=pybullet,bullet3"], "backend"),
+    (["ray.address=127.0.0.9:9"], "ray.address: cannot reach 127.0.0.9:9"),
+    (["-m", "speed=40,4", "ray.address=127.0.0.9:9"], "127.0.0.9:9"),
+    (["ray.address=ray://127.0.0.9:10001"], "ray.address"),
+    (["ray.address=head-without-port"], "ray.address"),
+]
+
+
+def _assert_bad_input(r: Ran | subprocess.CompletedProcess, tmp_path: Path, needle: str) -> None:
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("comexp: error: "), r.stderr
     assert needle in lines[0]
     assert "Traceback" not in r.stdout + r.stderr
     assert list(tmp_path.iterdir()) == []  # no database, no Hydra output folder
+
+
+@pytest.mark.parametrize(("args", "needle"), BAD_INPUT)
+def test_bad_input_is_one_line_and_writes_nothing(
+    tmp_path: Path, args: list[str], needle: str
+) -> None:
+    r = comexp_in_process(tmp_path, *args, "db=results/x.db" if "db=" not in args[0] else "seed=0")
+    _assert_bad_input(r, tmp_path, needle)
+
+
+@pytest.mark.parametrize(("args", "needle"), [BAD_INPUT[0], BAD_INPUT[12]])
+def test_bad_input_through_the_console_script(tmp_path: Path, args: list[str], needle: str) -> None:
+    """The installed `comexp` script in a child process: a run and a multirun (the cases
+    above call the same `main` in this process)."""
+    r = comexp(tmp_path, *args, "db=results/x.db")
+    _assert_bad_input(r, tmp_path, needle)
 
 
 # An unclosed bracket: PyYAML reports it where the next key starts (line 2, column 1).
@@ -138,7 +210,7 @@ def test_malformed_object_file_is_one_line_with_its_position(
     tmp_path: Path, args: list[str]
 ) -> None:
     conf = _user_conf(tmp_path)
-    r = comexp(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", **FAKE)
+    r = comexp_in_process(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", **FAKE)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("comexp: error: object 'bad': "), r.stderr
@@ -154,7 +226,7 @@ def test_malformed_group_file_hydra_composes_is_one_line(tmp_path: Path, args: l
     conf = tmp_path / "myconf"
     (conf / group).mkdir(parents=True)
     (conf / group / "mine.yaml").write_text("name: iso\nmu: [0.1, 1.0\n")
-    r = comexp(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db")
+    r = comexp_in_process(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db")
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1, r.stderr
@@ -186,7 +258,7 @@ def test_no_hydra_internals() -> None:
 
 
 def test_cfg_with_multirun_prints_every_jobs_config(tmp_path: Path) -> None:
-    r = comexp(tmp_path, "-m", "floor=iso,aniso", "speed=40,4", "--cfg", "job")
+    r = comexp_in_process(tmp_path, "-m", "floor=iso,aniso", "speed=40,4", "--cfg", "job")
     assert r.returncode == 0, r.stderr
     docs = list(yaml.safe_load_all(r.stdout))
     assert [(d["floor"]["name"], d["speed"]) for d in docs] == [
@@ -198,10 +270,12 @@ def test_cfg_with_multirun_prints_every_jobs_config(tmp_path: Path) -> None:
     assert all("hydra" not in d for d in docs)
     assert r.stdout.startswith("# job 0: floor=iso speed=40\n")
     # one package of each job's config, and Hydra's node with each job's own output folder
-    r = comexp(tmp_path, "--multirun", "floor=iso,aniso", "--cfg", "job", "-p", "floor.name")
+    r = comexp_in_process(
+        tmp_path, "--multirun", "floor=iso,aniso", "--cfg", "job", "-p", "floor.name"
+    )
     assert r.returncode == 0, r.stderr
     assert list(yaml.safe_load_all(r.stdout)) == ["iso", "aniso"]
-    r = comexp(tmp_path, "-m", "speed=40,4", "--cfg", "all", "--resolve")
+    r = comexp_in_process(tmp_path, "-m", "speed=40,4", "--cfg", "all", "--resolve")
     assert r.returncode == 0, r.stderr
     outs = [d["hydra"]["runtime"]["output_dir"] for d in yaml.safe_load_all(r.stdout)]
     assert [Path(o).name for o in outs] == ["0_pybullet_iso_speed40.0", "1_pybullet_iso_speed4.0"]
@@ -219,7 +293,7 @@ def test_cfg_with_multirun_prints_every_jobs_config(tmp_path: Path) -> None:
 def test_cfg_with_multirun_bad_input_is_one_line(
     tmp_path: Path, args: list[str], needle: str
 ) -> None:
-    r = comexp(tmp_path, *args)
+    r = comexp_in_process(tmp_path, *args)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("comexp: error: ") and needle in lines[0]
@@ -231,7 +305,7 @@ def test_an_unreachable_ray_address_fails_fast(tmp_path: Path, address: str) -> 
     """Refused (nothing listens) or unanswered (TEST-NET, packets dropped): one line naming
     the address well within 30 s, where Ray alone retries for minutes; nothing written."""
     t0 = time.monotonic()
-    r = comexp(tmp_path, f"ray.address={address}", *SMALL, "db=results/x.db", timeout=60, **FAKE)
+    r = comexp_in_process(tmp_path, f"ray.address={address}", *SMALL, "db=results/x.db", **FAKE)
     wall_s = time.monotonic() - t0
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1, r.stderr
@@ -281,7 +355,7 @@ def _pids_naming(needle: str) -> list[int]:
 # --- runs with a fake runner ---------------------------------------------------------------------
 
 
-def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
+def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path, local_ray) -> None:
     conf = tmp_path / "myconf" / "object"
     conf.mkdir(parents=True)
     (conf / "my_tri.yaml").write_text("outline_cm: [[0, 0], [9, 0], [0, 6]]\nheight_cm: 2\n")
@@ -297,7 +371,7 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
         "pusher.mu=[1.0]",
         "db=results/t.db",
     ]
-    r = comexp(tmp_path, *args, "grid.coms_per_object=2", **FAKE)
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=2", **FAKE)
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "t.db"
     assert rows(db, "select object, count(*) from episodes group by object") == [
@@ -307,31 +381,33 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path) -> None:
     summaries = list((tmp_path / "results" / "runs").glob("*/summary.md"))
     assert len(summaries) == 1 and "my_tri" in summaries[0].read_text()
     # rerun with one more CoM per object: only the 2 new episodes run
-    r = comexp(tmp_path, *args, "grid.coms_per_object=3")
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3")
     assert r.returncode == 0, r.stderr
     assert "4 already stored, 2 to run" in r.stdout + r.stderr, r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct sweep_id) from episodes") == [(6, 2)]
     assert rows(db, "select count(*) from sweeps") == [(2,)]
     # nothing left to do: no new sweep, no Ray
-    r = comexp(tmp_path, *args, "grid.coms_per_object=3")
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3")
     assert r.returncode == 0 and "all 6 episodes already stored" in r.stdout
     assert rows(db, "select count(*) from sweeps") == [(2,)]
 
 
-def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path) -> None:
+def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path, local_ray) -> None:
     """`estimator.method` on the command line is the episodes' estimator (and their identity):
     the two methods on the same grid are two sets of episodes, told apart in the database."""
     args = [*SMALL, "floor.mu=[1.0]", "grid.objects=[rect_8x5]", "db=results/m.db"]
     for method in ("magnitude", "paper"):
-        r = comexp(tmp_path, *args, f"estimator.method={method}", **FAKE)
+        r = comexp_in_process(tmp_path, *args, f"estimator.method={method}", **FAKE)
         assert r.returncode == 0, r.stderr
         assert "0 already stored" in r.stdout + r.stderr, r.stdout + r.stderr
     got = rows(tmp_path / "results" / "m.db", "select estimator from episodes order by id")
     assert [json.loads(e)["method"] for (e,) in got] == ["magnitude", "paper"]
 
 
-def test_aniso_multirun_example(tmp_path: Path) -> None:
-    r = comexp(tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", **FAKE)
+def test_aniso_multirun_example(tmp_path: Path, local_ray) -> None:
+    r = comexp_in_process(
+        tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", **FAKE
+    )
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "a.db"
     got = rows(
@@ -350,7 +426,7 @@ def test_aniso_multirun_example(tmp_path: Path) -> None:
     assert len(jobs) == 2 and "speed40" in jobs[0] and "speed4.0" in jobs[1]
 
 
-def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
+def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path, local_ray) -> None:
     args = [*SMALL, "floor.mu=[1.0]", "db=results/i.db", "execution.batch_size=2"]
     proc = subprocess.Popen(
         [*_command(), *args],
@@ -382,7 +458,7 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path) -> None:
     assert "interrupted" in err and "Traceback" not in err
     kept = rows(db, "select count(*) from episodes")[0][0]
     assert 4 <= kept < 20  # what finished was stored, before the end
-    r = comexp(tmp_path, *args, **FAKE)
+    r = comexp_in_process(tmp_path, *args, **FAKE)
     assert r.returncode == 0, r.stderr
     assert f"{kept} already stored, {20 - kept} to run" in r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct object) from episodes") == [(20, 20)]
@@ -412,12 +488,12 @@ def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
     assert mean_err < 3.0  # cm: an estimator that works at all beats the footprint size
 
 
-def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path) -> None:
+def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path, local_ray) -> None:
     """`backend=planar` behind the same command line: real physics, perception and estimator,
     stored with the planar physics identity."""
     from comexp.results.store import ResultsDB
 
-    r = comexp(
+    r = comexp_in_process(
         tmp_path,
         "backend=planar",
         "grid.objects=[rect_8x5]",

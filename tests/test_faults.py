@@ -162,9 +162,9 @@ def test_a_hang_inside_c_code_ends_the_worker_process() -> None:
 
 
 def test_episode_timeout_is_validated(tmp_path: Path) -> None:
-    from test_cli import comexp
+    from test_cli import comexp_in_process
 
-    r = comexp(tmp_path, "execution.episode_timeout_s=0", "db=results/x.db")
+    r = comexp_in_process(tmp_path, "execution.episode_timeout_s=0", "db=results/x.db")
     assert r.returncode == 2 and "execution.episode_timeout_s" in r.stderr
     assert list(tmp_path.iterdir()) == []
 
@@ -181,15 +181,17 @@ def _table_row(markdown: str, first_cell: str) -> list[str]:
     raise AssertionError(f"no row {first_cell!r} in:\n{markdown}")
 
 
-def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path) -> None:
+def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path, local_ray, capsys) -> None:
     """One sweep where 6 of 14 episodes fail, one for each reason (physics reasons as
     `run_episode` reports them, a hang -> timeout, a worker killer -> worker_died). The sweep
     completes; the failures are stored with their reason, counted in progress and summary,
     and the error tables use only the 8 ok episodes and say how many were left out."""
-    from test_cli import comexp, rows
+    from test_cli import comexp_in_process, rows
+
+    from comexp.cli.query import main as comexp_db
 
     objects = ["rect_8x5", "t_shape", "u_shape", "cross_12", "z_shape", "arrow", "l_shape"]
-    r = comexp(
+    r = comexp_in_process(
         tmp_path,
         f"grid.objects=[{','.join(objects)}]",
         "grid.coms_per_object=2",
@@ -200,7 +202,6 @@ def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path) -> None
         "execution.batch_size=2",
         "execution.max_retries=0",
         "execution.episode_timeout_s=1",
-        timeout=240,
         COMEXP_RUNNER="test_faults:faulty_run",
         COMEXP_SIMULATOR_FACTORY=FACTORY,
     )
@@ -228,31 +229,25 @@ def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path) -> None
     for reason in ("tipped 1", "timeout 1", "worker_died 1", "no_valid_contact 1"):
         assert reason in out
     # the tables: statistics of the 8 ok episodes (errors 1, 2 per object), 6 excluded
-    t = subprocess.run(
-        [str(Path(sys.executable).with_name("comexp-db")), "--db", str(db), "table"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert t.returncode == 0, t.stderr
-    assert "6 failed episode(s) excluded" in t.stdout, t.stdout
+    # `comexp-db` through its main() (its console script is run in test_dbcli.py)
+    capsys.readouterr()
+    code = comexp_db(["--db", str(db), "table"])
+    t = capsys.readouterr()
+    assert code == 0, t.err
+    assert "6 failed episode(s) excluded" in t.out, t.out
     for reason in ("left_view 1", "sim_unstable 1", "timeout 1", "worker_died 1"):
-        assert reason in t.stdout
-    cells = _table_row(t.stdout, "**all**")
+        assert reason in t.out
+    cells = _table_row(t.out, "**all**")
     # std is the sample std (ddof = 1): seven 2.0 and one 1.0 -> sqrt(0.875 / 7) = 0.354
-    assert cells == ["**all**", "8", "1.875", "0.354", "2.000", "1.000", "6"], t.stdout
-    assert _table_row(t.stdout, "l_shape")[-1] == "1"  # per object too
+    assert cells == ["**all**", "8", "1.875", "0.354", "2.000", "1.000", "6"], t.out
+    assert _table_row(t.out, "l_shape")[-1] == "1"  # per object too
     # the job's own report in its output folder says the same
     (report,) = (tmp_path / "results" / "runs").glob("*/summary.md")
     assert "6 failed episode(s) excluded" in report.read_text()
-    s = subprocess.run(
-        [str(Path(sys.executable).with_name("comexp-db")), "--db", str(db), "summary"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert s.returncode == 0, s.stderr
-    assert _table_row(s.stdout, "pybullet")[1:4] == ["8", "6", "1.875"], s.stdout
+    code = comexp_db(["--db", str(db), "summary"])
+    s = capsys.readouterr()
+    assert code == 0, s.err
+    assert _table_row(s.out, "pybullet")[1:4] == ["8", "6", "1.875"], s.out
 
 
 # --- the default local Ray: the driver killed -----------------------------------------------------

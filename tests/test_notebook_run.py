@@ -6,15 +6,13 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import sqlite3
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import pandas as pd
 import pytest
-from test_cli import comexp
+from test_cli import comexp_in_process
 from test_db import make_result
 
 import comexp as package
@@ -38,11 +36,11 @@ def _overrides(block: str) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
+def runs(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Iterator[dict]:
     """The README example run in a fresh directory (whose database already holds another
-    job's episode), and the command line with the same overrides in another one."""
-    from comexp.workers.session import shutdown_ray
-
+    job's episode), and the command line with the same overrides in another one (its
+    `main()` in this process, on the module's Ray; the README's `comexp.run` runs the
+    command in a child process)."""
     block = _readme_block()
     overrides = _overrides(block)
     nb, cli = tmp_path_factory.mktemp("notebook"), tmp_path_factory.mktemp("cli")
@@ -59,12 +57,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
         exec(compile(block, "README.md", "exec"), scope)  # noqa: S102 - our own document
     finally:
         os.chdir(cwd)
-        shutdown_ray()  # this module's local Ray: later in-process tests start their own
-    ray_tmp = Path(tempfile.mkdtemp(prefix="cxnb-"))  # short: Ray's socket paths must fit
-    try:
-        r = comexp(cli, *overrides, TMPDIR=str(ray_tmp))
-    finally:
-        shutil.rmtree(ray_tmp, ignore_errors=True)
+    r = comexp_in_process(cli, *overrides)
     assert r.returncode == 0, r.stderr
     yield {
         "df": scope["df"],

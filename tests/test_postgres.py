@@ -8,7 +8,9 @@ as the `postgres` user (the server refuses root). `make test` installs the packa
 
 from __future__ import annotations
 
+import contextlib
 import glob
+import io
 import os
 import shutil
 import socket
@@ -20,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_cli import FAKE, comexp
+from test_cli import FAKE, Ran, comexp, comexp_in_process
 
 from comexp.results.schema import SCHEMA_VERSION
 from comexp.results.store import ResultsDB, redact_url
@@ -128,11 +130,15 @@ def _grep_tree(root: Path, needle: str) -> list[str]:
     return hits
 
 
-def _dbcli(*args: str) -> subprocess.CompletedProcess[str]:
-    script = Path(sys.executable).with_name("comexp-db")
-    return subprocess.run(
-        [str(script), *args], capture_output=True, text=True, timeout=120, env=os.environ.copy()
-    )
+def _dbcli(*args: str) -> Ran:
+    """`comexp-db ARGS` through its main() in this process (exit code, stdout, stderr); its
+    console script is run in a child process by test_dbcli.py."""
+    from comexp.cli.query import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(list(args))
+    return Ran(code, out.getvalue(), err.getvalue())
 
 
 def test_job_resume_replay_and_no_password_anywhere(pg: PgServer, tmp_path: Path) -> None:
@@ -154,7 +160,8 @@ def _job_and_checks(package, url: str, work: Path, ray_tmp: Path, tmp_path: Path
     assert "ran 1 episodes" in first.stdout and "1 of its 1 grid episodes" in first.stdout
     # the resume as a multirun: Hydra's launcher lists each job's overrides, and saves
     # multirun.yaml beside the jobs
-    again = comexp(work, "-m", *TINY, f"db={url}", TMPDIR=str(ray_tmp))
+    # (through main() in this process: nothing left to run, no Ray)
+    again = comexp_in_process(work, "-m", *TINY, f"db={url}")
     assert again.returncode == 0, again.stderr
     assert "all 1 episodes already stored" in again.stdout
     assert "#0 : " in again.stdout + again.stderr and "***" in again.stdout + again.stderr

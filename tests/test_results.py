@@ -7,13 +7,12 @@ import dataclasses
 import math
 import re
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from test_cli import comexp
+from test_cli import comexp_in_process
 from test_db import make_result
 
 import comexp as package
@@ -37,13 +36,11 @@ TINY = [
 
 
 @pytest.fixture(scope="module")
-def job_db(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def job_db(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Path:
+    """The job through the command's own `main()`, in this process, on the module's Ray
+    (the installed script runs real jobs in test_notebook_run.py and test_postgres.py)."""
     work = tmp_path_factory.mktemp("job")
-    ray_tmp = Path(tempfile.mkdtemp(prefix="cxres-"))  # short: Ray's socket paths must fit
-    try:
-        r = comexp(work, *TINY, "db=job.db", TMPDIR=str(ray_tmp))
-    finally:
-        shutil.rmtree(ray_tmp, ignore_errors=True)
+    r = comexp_in_process(work, *TINY, "db=job.db")
     assert r.returncode == 0, r.stderr
     return work / "job.db"
 

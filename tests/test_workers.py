@@ -145,19 +145,9 @@ def test_import_dotted_forms() -> None:
 
 
 @pytest.fixture(scope="module")
-def ray_session():
-    import ray
-
-    from comexp.workers.session import ensure_ray
-
-    if ray.is_initialized():
-        ray.shutdown()
-    saved = dict(os.environ)  # ensure_ray exports the workers' environment
-    ensure_ray(None, 2, env={"PYTHONPATH": TESTS_DIR})
+def ray_session(local_ray):
+    """The module's local Ray (conftest.py), started by `ensure_ray` as `comexp` starts it."""
     yield
-    ray.shutdown()
-    os.environ.clear()
-    os.environ.update(saved)
 
 
 def _pool(**kw):
