@@ -156,7 +156,8 @@ class KinematicSim(Simulator):
 # OpenBLAS's AVX2 kernels instead of AVX-512 (OPENBLAS_CORETYPE=Haswell), the box with CoM
 # (-2, -1) at seed 7 takes the mirror-image first push and ends at 1.020 cm instead of
 # 0.864 cm. Measured over seeds 0-23 of all 8 cases, natively and with the CPU features
-# disabled (bench/emulate_cpu.sh avx2 | sse): one episode's error 0.077-1.141 cm, the mean of
+# disabled (`git show c5b8989:bench/emulate_cpu.sh` avx2 | sse): one episode's error
+# 0.077-1.141 cm, the mean of
 # 8 consecutive seeds <= 0.752 cm (seeds 0-7: <= 0.582 cm); rotation error per episode:
 # median <= 0.771 deg, max <= 1.688 deg.
 IDEAL_SEEDS = range(8)
@@ -340,7 +341,8 @@ def test_end_to_end_dynamic_pushing(backend):
         # 5 s settle limit, as rocking footprints did (docs/physics_pybullet.md), exceeds it.
         assert r.sim_time_s < 2.0, (r.spec.object, r.sim_time_s)
     # measured over 8 seeds of each case, both engines, CPU features on and off
-    # (bench/emulate_cpu.sh): the mean of the 3 <= 0.676 cm, one episode <= 1.062 cm
+    # (git show c5b8989:bench/emulate_cpu.sh): the mean of the 3 <= 0.676 cm, one episode
+    # <= 1.062 cm
     errors = [r.error_cm for r in results]
     assert np.mean(errors) < 1.0, errors
     assert max(errors) < 2.0, errors

@@ -108,7 +108,8 @@ def test_concave_contacts_point_inward():
 
 
 # Three random walks of 8 images each, errors pooled. Measured over 24 walks (192 fits) per
-# shape, natively and with `bench/emulate_cpu.sh avx2` (one tri walk differs): the median of 3
+# shape, natively and with `git show c5b8989:bench/emulate_cpu.sh` avx2 (one tri walk
+# differs): the median of 3
 # pooled walks <= 0.231 deg, the worst fit 1.37 deg (L; 0.94 box, 1.10 tri), position error
 # <= 1.29 mm (0.48 px of 2.68 mm). One walk alone (the old test: seed 3, median < 0.35, max
 # < 0.8 deg, < 1 mm) failed for 3-4 of the 24 walks of each shape.
