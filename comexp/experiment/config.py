@@ -25,7 +25,13 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
 from comexp.experiment.objects import ObjectDef, load_objects
-from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES, backend_names
+from comexp.experiment.registry import (
+    ENGINES,
+    FLOOR_FRICTION_CHOICES,
+    RENDERER_CHOICES,
+    backend_names,
+    resolve_backend,
+)
 from comexp.method.estimator import EstimatorSettings
 
 FLOOR_KINDS = ("iso", "aniso")
@@ -49,7 +55,7 @@ class BackendConfig:
 
     def options(self) -> dict[str, str]:
         """The simulator's constructor options (`comexp.experiment.registry.make_simulator`)."""
-        return {} if self.name == "planar" else {"floor_friction": self.floor_friction}
+        return {"floor_friction": self.floor_friction} if self.name in ENGINES else {}
 
 
 @dataclass
@@ -222,7 +228,7 @@ def simulator_options(cfg: Any) -> dict[str, str]:
     """The simulator's constructor options for a job (`make_simulator`, the workers' pool and
     the episodes' physics identity): the backend's own, and the engines' renderer."""
     opts = dict(cfg.backend.options())
-    if cfg.backend.name != "planar":
+    if cfg.backend.name in ENGINES:
         opts["renderer"] = cfg.camera.renderer
     return opts
 
@@ -322,9 +328,15 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
 
 def _validate_backend(backend: BackendConfig) -> None:
     if backend.name not in backend_names():
-        raise ConfigError(
-            f"unknown backend {backend.name!r} (choose one of: {', '.join(backend_names())})"
-        )
+        if ":" not in backend.name:
+            raise ConfigError(
+                f"unknown backend {backend.name!r} (choose one of: {', '.join(backend_names())}"
+                ", or a plug-in module:Class)"
+            )
+        try:  # a plug-in: importable, a Simulator, with its physics identity
+            resolve_backend(backend.name)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     if backend.floor_friction not in FLOOR_FRICTION_CHOICES:
         raise ConfigError(
             f"backend.floor_friction must be one of {', '.join(FLOOR_FRICTION_CHOICES)}, "

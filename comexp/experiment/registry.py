@@ -3,12 +3,16 @@
 `make_simulator(name, ...)` imports a backend's module only when it is asked for (the engines
 are heavy); `physics_identity(name, ...)` names what determines its results, part of every
 episode's identity. The interface every backend implements is `comexp.experiment.interface`'s.
+A researcher's own backend plugs in by name as `module:Class` (`backend.name`, e.g. from a user
+config directory's `backend/NAME.yaml`): a `Simulator` subclass whose module defines
+`PHYSICS_VERSION` and `PHYSICS_SETTINGS` (and `ENGINE_DISTRIBUTION` if an engine computes it),
+as the built-in backends' modules do.
 """
 
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from comexp.method.scene import SimSettings
 
@@ -20,6 +24,8 @@ BACKENDS: dict[str, str] = {
     "pybullet": "comexp.backends.pybullet_sim:PybulletSimulator",
     "mujoco": "comexp.backends.mujoco_sim:MujocoSimulator",
 }
+# The 3-D engines: they take `floor_friction` and a renderer; planar and plug-ins take neither.
+ENGINES = ("pybullet", "mujoco")
 # How an engine gets the floor's friction: "model" applies the shared footprint model
 # (backends/floor_friction.py) as a force each step, the engine's own object-floor friction off;
 # "native" is the engine's own contact friction (kept to show the difference).
@@ -42,11 +48,7 @@ def physics_identity(
     import hashlib
     from importlib import metadata
 
-    try:
-        module_name = BACKENDS[name].split(":")[0]
-    except KeyError:
-        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
-    module = importlib.import_module(module_name)
+    module, _ = resolve_backend(name)
     engine = getattr(module, "ENGINE_DISTRIBUTION", None)
     engine_v = metadata.version(engine) if engine else "none"
     # the engine's own renderer is what every row had before `camera.renderer` existed: it is
@@ -64,10 +66,34 @@ def backend_names() -> list[str]:
 def make_simulator(name: str, settings: SimSettings | None = None, **options) -> Simulator:
     """Create a backend by name (`planar`, `pybullet`, `mujoco`); engines are imported lazily.
     `options` are the backend's own (e.g. `floor_friction` for the engines)."""
-    try:
-        target = BACKENDS[name]
-    except KeyError:
-        raise ValueError(f"unknown backend {name!r}; choose one of {backend_names()}") from None
-    module_name, cls_name = target.split(":")
-    cls = getattr(importlib.import_module(module_name), cls_name)
+    _, cls = resolve_backend(name)
     return cls(settings, **options)
+
+
+def resolve_backend(name: str) -> tuple[Any, type]:
+    """The module and the `Simulator` class of backend `name`: a built-in by name, else the
+    plug-in `module:Class`, imported. ValueError (one line, starting with `backend`) when it
+    is unknown, cannot be imported, is not a `Simulator` or its module lacks the physics
+    identity's names."""
+    from comexp.experiment.interface import Simulator
+
+    target = BACKENDS.get(name, name)
+    module_name, sep, cls_name = target.partition(":")
+    if not sep:
+        raise ValueError(
+            f"unknown backend {name!r}; choose one of {backend_names()} or a plug-in module:Class"
+        )
+    try:
+        module = importlib.import_module(module_name)
+        cls = getattr(module, cls_name)
+    except (ImportError, AttributeError, ValueError) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"backend {name!r}: cannot import the plug-in: {msg}") from None
+    if not (isinstance(cls, type) and issubclass(cls, Simulator)):
+        raise ValueError(f"backend {name!r}: not a Simulator subclass")
+    missing = [a for a in ("PHYSICS_VERSION", "PHYSICS_SETTINGS") if not hasattr(module, a)]
+    if missing:
+        raise ValueError(
+            f"backend {name!r}: its module must define {', '.join(missing)} (the physics identity)"
+        )
+    return module, cls

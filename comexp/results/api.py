@@ -185,13 +185,14 @@ def backend_options_for(spec: EpisodeSpec) -> dict[str, Any]:
     only a hash of the options, so each choice is tried. An episode stored without a pinned
     physics runs with the defaults."""
     from comexp.experiment.registry import (
+        ENGINES,
         FLOOR_FRICTION_CHOICES,
         RENDERER_CHOICES,
         physics_identity,
     )
 
     choices: list[dict[str, str]] = [{}]
-    if spec.backend != "planar":
+    if spec.backend in ENGINES:
         choices = [
             {"floor_friction": f, "renderer": r}
             for r in RENDERER_CHOICES
