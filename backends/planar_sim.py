@@ -23,7 +23,7 @@ model"), so that the 3-D engines can be checked against it:
   not rounded to a step). An impact is resolved first, without floor friction (an impulse is
   instantaneous; the floor's friction over it is negligible), then the step's friction and the
   sustained push are solved together; the pressure follows the sustained forces only.
-- **The camera** is the exact ray-cast of the prism (`comexp.method.perception.render_prism_depth`).
+- **The camera** is the exact ray-cast of the prism (`comexp.method.rendering.render_prism_depth`).
 
 One compiled call (Numba) runs many steps: contact, impact, the friction solves with the
 pusher constraint, the pressure fixed point, integration and the penetration projection, on
@@ -134,8 +134,8 @@ def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, 
     The constrained solve starts from the twist the object brings into the step (projected
     on the plane), not from the free solve's: on a sustained push that is next to the
     answer, while the free solve's twist has the pusher's tangential friction far off its
-    kink, where Newton's steps overshoot (3x fewer passes over the samples, the same
-    minimiser: `bench/planar_speed.py --baseline`).
+    kink, where Newton's steps overshoot (passes over the samples counted in
+    docs/performance.md, "planar"; the same minimiser).
     Returns (xi, normal impulse, tangential impulse)."""
     nx, ny, rx, ry, gap = con
     a = np.array([nx, ny, rx * ny - ry * nx])
