@@ -54,7 +54,9 @@ from comexp.method.scene import Pose2D, wrap_angle
 
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
-METHODS = ("paper", "magnitude", "motion")  # motion: comexp.method.motion_estimator
+METHODS = ("paper", "magnitude", "motion")
+# built-in methods with their own class, resolved as plug-ins are (the module imports this one)
+BUILT_IN_PLUGINS = {"motion": "comexp.method.motion_estimator:MotionEstimator"}
 # Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
 # squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
 # (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
@@ -825,15 +827,13 @@ def is_plugin(method: str) -> bool:
 
 
 def resolve_estimator(method: str) -> type:
-    """The estimator class `method` names: `ComEstimator` for the built-in methods, else the
-    plug-in `module:Class` / `module.Class`, imported; ValueError (one line, starting with
+    """The estimator class `method` names: `ComEstimator` for `paper` and `magnitude`, the
+    class `BUILT_IN_PLUGINS` names for the other built-ins, else the plug-in `module:Class` /
+    `module.Class`, imported; ValueError (one line, starting with
     `method`) when it cannot be imported or lacks the `Estimator` protocol."""
-    if method == "motion":  # the path of every push (docs/method.md, "estimator.method=motion")
-        from comexp.method.motion_estimator import MotionEstimator
-
-        return MotionEstimator
-    if method in METHODS:
+    if method in METHODS and method not in BUILT_IN_PLUGINS:
         return ComEstimator
+    method = BUILT_IN_PLUGINS.get(method, method)
     module, sep, name = method.partition(":")
     if not sep:
         module, _, name = method.rpartition(".")
