@@ -64,7 +64,8 @@ def backend_names() -> list[str]:
 
 
 def make_simulator(name: str, settings: SimSettings | None = None, **options) -> Simulator:
-    """Create a backend by name (`planar`, `pybullet`, `mujoco`); engines are imported lazily.
+    """Create a backend by name (`planar`, `pybullet`, `mujoco`, or a plug-in `module:Class`);
+    engines are imported lazily.
     `options` are the backend's own (e.g. `floor_friction` for the engines)."""
     _, cls = resolve_backend(name)
     return cls(settings, **options)
@@ -72,8 +73,8 @@ def make_simulator(name: str, settings: SimSettings | None = None, **options) ->
 
 def resolve_backend(name: str) -> tuple[Any, type]:
     """The module and the `Simulator` class of backend `name`: a built-in by name, else the
-    plug-in `module:Class`, imported. ValueError (one line, starting with `backend`) when it
-    is unknown, cannot be imported, is not a `Simulator` or its module lacks the physics
+    plug-in `module:Class`, imported. ValueError (one line, naming the backend) when it is
+    unknown, cannot be imported, is not a `Simulator` or its module lacks the physics
     identity's names."""
     from comexp.experiment.interface import Simulator
 
