@@ -179,6 +179,26 @@ def line_cuts_region(region: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.nda
     return (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
 
 
+def push_candidates(
+    contacts_m: np.ndarray,
+    normals: np.ndarray,
+    settings: EstimatorSettings,
+    outline_m: np.ndarray | None = None,
+    pusher_radius_m: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Algorithm 1's candidates as every estimator keeps them: contacts (n x 2), unit inward
+    normals, and which of them the pusher can reach (all, without an outline and a radius or
+    with `check_reachability` off)."""
+    contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
+    n = np.asarray(normals, dtype=float).reshape(-1, 2)
+    unit = n / np.linalg.norm(n, axis=1, keepdims=True)
+    if settings.check_reachability and outline_m is not None and pusher_radius_m:
+        allowed = reachable_contacts(outline_m, contacts, unit, pusher_radius_m)
+    else:
+        allowed = np.ones(len(contacts), dtype=bool)
+    return contacts, unit, allowed
+
+
 def reachable_contacts(
     outline_m: np.ndarray,
     P: np.ndarray,
@@ -522,15 +542,9 @@ class ComEstimator:
             if self.settings.method == "magnitude"
             else None
         )
-        self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
-        n = np.asarray(normals, dtype=float).reshape(-1, 2)
-        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-        if self.settings.check_reachability and outline_m is not None and pusher_radius_m:
-            self.allowed = reachable_contacts(
-                outline_m, self.contacts, self.normals, pusher_radius_m
-            )
-        else:
-            self.allowed = np.ones(len(self.contacts), dtype=bool)
+        self.contacts, self.normals, self.allowed = push_candidates(
+            contacts_m, normals, self.settings, outline_m, pusher_radius_m
+        )
 
     @property
     def estimate_m(self) -> np.ndarray:

@@ -29,7 +29,7 @@ from comexp.method.estimator import (
     SUBPIXEL,
     EstimatorSettings,
     choose_contact,
-    reachable_contacts,
+    push_candidates,
     refine_grid,
     weighted_pca,
 )
@@ -342,15 +342,9 @@ class MotionEstimator:
         self.footprint = np.asarray(region_m, dtype=float).reshape(-1, 2)
         self.points = refine_grid(self.footprint, self.pixel_m)
         self.weights = np.full(len(self.points), 1.0 / max(len(self.points), 1))
-        self.contacts = np.asarray(contacts_m, dtype=float).reshape(-1, 2)
-        n = np.asarray(normals, dtype=float).reshape(-1, 2)
-        self.normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-        if self.settings.check_reachability and outline_m is not None and pusher_radius_m:
-            self.allowed = reachable_contacts(
-                outline_m, self.contacts, self.normals, pusher_radius_m
-            )
-        else:
-            self.allowed = np.ones(len(self.contacts), dtype=bool)
+        self.contacts, self.normals, self.allowed = push_candidates(
+            contacts_m, normals, self.settings, outline_m, pusher_radius_m
+        )
         self.features: list[PushFeatures] = []
         self._path: PushPath | None = None
         self._sums: tuple[np.ndarray, ...] | None = None  # running `push_logliks`
