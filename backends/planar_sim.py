@@ -12,7 +12,18 @@ model"), so that the 3-D engines can be checked against it:
   linear over the footprint, tensionless (clipped at zero), its centre placed by moment balance
   about the horizontal axes through the CoM: c - G = ((z_p - h_G) F_p - h_G F_f) / (m g), with
   F_p the pusher's force at its contact height z_p and F_f the floor's friction at the floor.
-  If c leaves the footprint's convex hull the object tips, and the push reports it.
+- **Pitch about a support edge** (tipping): when c would leave the footprint's convex hull
+  across an edge, the floor can no longer balance the moment and the object pitches about
+  that edge: I_e theta'' = m g (c_n - o cos theta + h_G sin theta), with c_n the required
+  centre's reach along the edge's outward normal, o the edge's distance from the CoM and I_e
+  the moment of inertia about the edge; on the leaning face the pusher's force is normal to
+  it, at the pusher's height. An impact does not pitch the object: the pusher's
+  line contact spans the CoM's height, so its impulse can pass through it, and a plastic
+  impact takes the least kinetic energy it can. The pitch lands back (plastically) at 0 or
+  tips the object over once the CoM passes above the edge (theta >= atan(o / h_G)); the
+  object's tilt is the pitch, and the protocol's one rule (`tip_limit_deg`) says `tipped`, as
+  for the engines. The pitch is a small-angle sub-model: the slide and spin go on as on the
+  flat footprint with the pressure at the edge (docs/physics.md, "Tipping").
 - **Stiction** without creep or chatter: each step solves for the end-of-step velocity
   implicitly (backward Euler on the friction, a convex minimisation of kinetic energy change
   plus the step's frictional dissipation); an object whose friction can hold it is exactly at
@@ -41,7 +52,6 @@ from numba import njit
 from comexp.backends.floor_friction import (
     COP_X,
     COP_Y,
-    TIPPED,
     FootprintFriction,
     FrictionSettings,
     free_solve_kernel,
@@ -71,16 +81,24 @@ class PlanarGeometry(NamedTuple):
     com: np.ndarray  # object frame
     r_bound: float  # reach of the outline from the CoM
     radius: float  # the pusher's
-    ixx: float  # about the CoM's horizontal axis (impact tipping)
     poly: np.ndarray  # scratch: the outline in world coordinates
+    edge_n: np.ndarray  # the support hull's edges (object frame): outward unit normals
+    edge_o: np.ndarray  # and distances from the CoM
+    edge_inertia: np.ndarray  # moment of inertia about each edge (kg m^2)
+    edge_over: np.ndarray  # the pitch at which the CoM is above the edge (rad)
 
 
 # Model state vector `ms` (float64): CoM position, yaw, CoM twist (v_x, v_y, omega), the
 # pusher's normal impulse of the last sustained solve (the next step's first guess), the
-# pusher's normal impulse of the last step (N s), and whether an impact tipped the object.
-G_X, G_Y, YAW, XI_X, XI_Y, XI_W, LAM_PREV, IMPULSE, IMPACT_TIPPED = range(9)
-MS_SIZE = 9
-TRACE_COLS = 7  # per step: CoM x, y, yaw, twist (3), tipped
+# pusher's normal impulse of the last step (N s), the pitch about a support edge (rad, >= 0),
+# its rate (rad/s), that edge's index (meaningful while pitched), 1 once tipped over, and the
+# largest pitch of the current `_run` call.
+G_X, G_Y, YAW, XI_X, XI_Y, XI_W, LAM_PREV, IMPULSE, PITCH, PITCH_W, PITCH_EDGE, OVER, PITCH_MAX = (
+    range(13)
+)
+MS_SIZE = 13
+TRACE_COLS = 9  # per step: CoM x, y, yaw, twist (3), tilt (rad), its rate's world x, y
+TIPPED_OVER_RAD = math.pi / 2  # the tilt an object that tipped over reports: on its side
 
 
 @njit(cache=True)
@@ -167,28 +185,82 @@ def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, 
 
 
 @njit(cache=True)
-def _impact_tips(geo, pg, yaw, lam, t_imp, nx, ny):
-    """An impact's impulsive moment about the horizontal axes tips the object when the
-    kinetic energy it gives a rotation about the support edge beats the potential barrier
-    of lifting the CoM over that edge."""
-    px, py = lam * nx + t_imp * -ny, lam * ny + t_imp * nx
+def _pitch_step(geo, pg, ms, cx, cy, fpx, fpy, rx, ry, dt):
+    """Advance the pitch about a support edge by one step (semi-implicit Euler), given the
+    centre of pressure c (object frame, from the CoM) that the step's forces require: the
+    floor supplies m g times c's reach inside the hull, and what lies beyond the edge pitches
+    the object. A flat object starts pitching about the edge c leaves the hull by most.
+
+    c counts the pusher's force F_p (object frame; its contact point r from the CoM) at the
+    height z_p. On a face leaning by theta the force is normal to the face and still at the
+    pusher's height, so its moment about the edge is F_pn (z_p - D sin theta) / cos theta,
+    D the contact's distance behind the edge: the difference is added here."""
+    theta, w = ms[PITCH], ms[PITCH_W]
+    if theta == 0.0 and w == 0.0:
+        worst, edge = 0.0, -1
+        for i in range(pg.edge_o.shape[0]):
+            v = pg.edge_n[i, 0] * cx + pg.edge_n[i, 1] * cy - pg.edge_o[i]
+            if v > worst:
+                worst, edge = v, i
+        if edge < 0:
+            return
+        ms[PITCH_EDGE] = edge
+    e = int(ms[PITCH_EDGE])
+    ex, ey = pg.edge_n[e, 0], pg.edge_n[e, 1]
+    cn = ex * cx + ey * cy
+    arm = cn - pg.edge_o[e] * math.cos(theta) + geo.h_com * math.sin(theta)
+    f_n = ex * fpx + ey * fpy
+    if f_n != 0.0 and theta != 0.0:
+        lean = pg.edge_o[e] - (ex * rx + ey * ry)  # D
+        z = geo.z_push
+        arm += f_n / (geo.m * GRAVITY_M_S2) * ((z - lean * math.sin(theta)) / math.cos(theta) - z)
+    w += geo.m * GRAVITY_M_S2 * arm / pg.edge_inertia[e] * dt
+    theta += w * dt
+    if theta <= 0.0:  # lands back flat: a plastic landing
+        theta = w = 0.0
+    if theta >= pg.edge_over[e]:  # the CoM is above the edge: it falls over
+        ms[OVER] = 1.0
+    ms[PITCH], ms[PITCH_W] = theta, w
+    ms[PITCH_MAX] = max(ms[PITCH_MAX], TIPPED_OVER_RAD if ms[OVER] != 0.0 else theta)
+
+
+@njit(cache=True)
+def _sustained_solve(
+    geo, fs, normal, dxw, dyw, dt, active, con, vqx, vqy, mu_p, lam0, xi_hat, c, s
+):
+    """The step's floor friction and sustained push, with the pressure fixed by the sustained
+    forces: solved, the pressure updated from its forces, solved once more when the centre of
+    pressure moved. Returns the twist, the pusher's normal impulse, and (object frame) the
+    centre of pressure the forces require and the pusher's force."""
+    nx, ny = con[0], con[1]
+    sol = xi_hat
+    lam2 = 0.0
+    cox = coy = fpx = fpy = 0.0
+    den = geo.m * GRAVITY_M_S2
     arm = geo.z_push - geo.h_com
-    p_abs = math.hypot(px, py)
-    if abs(arm) < 1e-12 or p_abs == 0.0:
-        return False
-    c, s = math.cos(yaw), math.sin(yaw)
-    sign = math.copysign(1.0, arm)
-    ux, uy = px / p_abs, py / p_abs
-    dirx, diry = (c * ux + s * uy) * sign, (-s * ux + c * uy) * sign
-    dist = np.inf
-    for i in range(geo.hull_o.shape[0]):
-        along = geo.hull_n[i, 0] * dirx + geo.hull_n[i, 1] * diry
-        dist = min(dist, geo.hull_o[i] / max(along, 1e-9))
-    i_edge = pg.ixx + geo.m * (dist**2 + geo.h_com**2)
-    ang = abs(arm) * p_abs
-    energy = ang * ang / (2.0 * i_edge)
-    barrier = geo.m * GRAVITY_M_S2 * (math.hypot(dist, geo.h_com) - geo.h_com)
-    return energy > barrier
+    for it in range(2):
+        if active:
+            sol, lam2, t2 = _solve_with_pusher(
+                geo, normal, True, xi_hat, dxw, dyw, dt, con, vqx, vqy, mu_p, lam0
+            )
+        else:
+            sol = free_solve_kernel(geo, normal, xi_hat, dxw, dyw, dt)
+            lam2 = t2 = 0.0
+        # forces of this step (N): floor friction from the momentum balance
+        ix, iy = geo.M[0] * (sol[0] - xi_hat[0]), geo.M[1] * (sol[1] - xi_hat[1])
+        pix = piy = 0.0
+        if active and lam2 > 0:
+            pix, piy = lam2 * nx + t2 * -ny, lam2 * ny + t2 * nx
+        ffx, ffy = (ix - pix) / dt, (iy - piy) / dt
+        fpx, fpy = pix / dt, piy / dt
+        cwx = (arm * fpx - geo.h_com * ffx) / den
+        cwy = (arm * fpy - geo.h_com * ffy) / den
+        cox, coy = c * cwx + s * cwy, -s * cwx + c * cwy
+        moved = math.hypot(cox - fs[COP_X], coy - fs[COP_Y])
+        set_cop_kernel(geo, fs, normal, cox, coy)
+        if moved < 1e-4 or it == 1:
+            break
+    return sol, lam2, cox, coy, c * fpx + s * fpy, -s * fpx + c * fpy
 
 
 @njit(cache=True)
@@ -201,6 +273,8 @@ def _step(geo, fs, normal, dxw, dyw, pg, ms, q0x, q0y, q1x, q1y, dt, mu_p):
     if far and ms[XI_X] == 0.0 and ms[XI_Y] == 0.0 and ms[XI_W] == 0.0:
         if fs[COP_X] != 0.0 or fs[COP_Y] != 0.0:  # no force acts: the weight's pressure alone
             set_cop_kernel(geo, fs, normal, 0.0, 0.0)
+        if ms[PITCH] != 0.0 or ms[PITCH_W] != 0.0:
+            _pitch_step(geo, pg, ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, dt)  # the weight alone acts
         return  # at rest, pusher away: friction holds it exactly (no creep)
     active = False
     con = (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -222,39 +296,14 @@ def _step(geo, fs, normal, dxw, dyw, pg, ms, q0x, q0y, q1x, q1y, dt, mu_p):
             xi, lam1, t1 = _solve_with_pusher(
                 geo, normal, False, xi, dxw, dyw, dt, con, vqx, vqy, mu_p, 0.0
             )
-            if lam1 > 0 and _impact_tips(geo, pg, yaw, lam1, t1, nx, ny):
-                ms[IMPACT_TIPPED] = 1.0
             ms[IMPULSE] += lam1
     # 2) the step's floor friction (and the sustained push), with the pressure fixed by the
-    #    sustained forces: solved, the pressure updated from its forces, solved once more
-    #    when the centre of pressure moved
-    xi_hat = xi
-    sol = xi
-    lam2 = 0.0
-    den = geo.m * GRAVITY_M_S2
-    arm = geo.z_push - geo.h_com
-    for it in range(2):
-        if active:
-            sol, lam2, t2 = _solve_with_pusher(
-                geo, normal, True, xi_hat, dxw, dyw, dt, con, vqx, vqy, mu_p, ms[LAM_PREV]
-            )
-        else:
-            sol = free_solve_kernel(geo, normal, xi_hat, dxw, dyw, dt)
-            lam2 = t2 = 0.0
-        # forces of this step (N): floor friction from the momentum balance
-        ix, iy = geo.M[0] * (sol[0] - xi_hat[0]), geo.M[1] * (sol[1] - xi_hat[1])
-        pix = piy = 0.0
-        if active and lam2 > 0:
-            pix, piy = lam2 * nx + t2 * -ny, lam2 * ny + t2 * nx
-        ffx, ffy = (ix - pix) / dt, (iy - piy) / dt
-        fpx, fpy = pix / dt, piy / dt
-        cwx = (arm * fpx - geo.h_com * ffx) / den
-        cwy = (arm * fpy - geo.h_com * ffy) / den
-        cox, coy = c * cwx + s * cwy, -s * cwx + c * cwy
-        moved = math.hypot(cox - fs[COP_X], coy - fs[COP_Y])
-        set_cop_kernel(geo, fs, normal, cox, coy)
-        if moved < 1e-4 or it == 1:
-            break
+    #    sustained forces
+    sol, lam2, cox, coy, fpx, fpy = _sustained_solve(
+        geo, fs, normal, dxw, dyw, dt, active, con, vqx, vqy, mu_p, ms[LAM_PREV], xi, c, s
+    )
+    rx_o, ry_o = c * rx + s * ry, -s * rx + c * ry
+    _pitch_step(geo, pg, ms, cox, coy, fpx, fpy, rx_o, ry_o, dt)
     ms[IMPULSE] += lam2
     ms[LAM_PREV] = lam2
     ms[XI_X], ms[XI_Y], ms[XI_W] = sol[0], sol[1], sol[2]
@@ -276,6 +325,7 @@ def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace):
     pushed in any of them. `trace` (n x TRACE_COLS, or 0 rows: none) gets every step's state."""
     touched = False
     qx, qy = q_start[0], q_start[1]
+    ms[PITCH_MAX] = TIPPED_OVER_RAD if ms[OVER] != 0.0 else ms[PITCH]
     for i in range(targets.shape[0]):
         _step(geo, fs, normal, dxw, dyw, pg, ms, qx, qy, targets[i, 0], targets[i, 1], dt, mu_p)
         qx, qy = targets[i, 0], targets[i, 1]
@@ -283,8 +333,22 @@ def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace):
         if trace.shape[0] > 0:
             for j in range(6):
                 trace[i, j] = ms[j]
-            trace[i, 6] = 1.0 if fs[TIPPED] != 0.0 or ms[IMPACT_TIPPED] != 0.0 else 0.0
+            trace[i, 6] = TIPPED_OVER_RAD if ms[OVER] != 0.0 else ms[PITCH]
+            wx, wy = _pitch_rate_world(pg, ms)
+            trace[i, 7], trace[i, 8] = wx, wy
     return touched
+
+
+@njit(cache=True)
+def _pitch_rate_world(pg, ms):
+    """The pitch rate as an angular velocity (world x, y): about the edge, z x n."""
+    if ms[PITCH_W] == 0.0 or ms[OVER] != 0.0:
+        return 0.0, 0.0
+    e = int(ms[PITCH_EDGE])
+    c, s = math.cos(ms[YAW]), math.sin(ms[YAW])
+    nx = c * pg.edge_n[e, 0] - s * pg.edge_n[e, 1]
+    ny = s * pg.edge_n[e, 0] + c * pg.edge_n[e, 1]
+    return -ny * ms[PITCH_W], nx * ms[PITCH_W]
 
 
 class PlanarModel:
@@ -307,10 +371,18 @@ class PlanarModel:
         self.z_push = self.fr.z_push
         self.r_bound = float(np.max(np.hypot(*(self.outline - self.com).T)))  # reach from CoM
         self.radius = pusher.radius_m
+        edge_n, edge_o = self.fr.hull_n, self.fr.hull_o  # the support hull, from the CoM
+        # about each edge: the inertia about the CoM's parallel axis (products of inertia
+        # neglected, as in the model) moved to the edge, o^2 + h_G^2 away
+        tx, ty = -edge_n[:, 1], edge_n[:, 0]
+        i_axis = obj.ixx_kg_m2 * tx**2 + obj.iyy_kg_m2 * ty**2
         self.geo = PlanarGeometry(
             outline=np.ascontiguousarray(self.outline), com=np.ascontiguousarray(self.com),
-            r_bound=self.r_bound, radius=float(self.radius), ixx=float(obj.ixx_kg_m2),
-            poly=np.zeros_like(self.outline),
+            r_bound=self.r_bound, radius=float(self.radius), poly=np.zeros_like(self.outline),
+            edge_n=np.ascontiguousarray(edge_n, dtype=float),
+            edge_o=np.ascontiguousarray(edge_o, dtype=float),
+            edge_inertia=np.ascontiguousarray(i_axis + self.m * (edge_o**2 + self.h_com**2)),
+            edge_over=np.ascontiguousarray(np.arctan2(edge_o, self.h_com)),
         )  # fmt: skip
         self.ms = np.zeros(MS_SIZE)
 
@@ -331,8 +403,22 @@ class PlanarModel:
         self.ms[XI_X : XI_W + 1] = value
 
     @property
-    def tipped(self) -> bool:
-        return self.fr.tipped or bool(self.ms[IMPACT_TIPPED])
+    def tilt_rad(self) -> float:
+        """The pitch about a support edge; on its side once tipped over."""
+        return TIPPED_OVER_RAD if self.ms[OVER] != 0.0 else float(self.ms[PITCH])
+
+    @property
+    def flat(self) -> bool:
+        """On the floor and not pitching (the pitch and its rate exactly 0)."""
+        return self.ms[PITCH] == 0.0 and self.ms[PITCH_W] == 0.0 and self.ms[OVER] == 0.0
+
+    def tilt_axis_rate(self) -> tuple[float, float]:
+        """The pitch rate as a world angular velocity's x, y."""
+        return _pitch_rate_world(self.geo, self.ms)
+
+    def tilt_direction(self) -> np.ndarray:
+        """The object-frame outward normal of the edge the object pitches about."""
+        return self.geo.edge_n[int(self.ms[PITCH_EDGE])]
 
     # --- frames ------------------------------------------------------------------------
     def rot(self) -> np.ndarray:
@@ -379,22 +465,34 @@ def _boundary_distance(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return np.min(np.hypot(*(pts[:, None, :] - closest).transpose(2, 0, 1)), axis=1)
 
 
-def _object_state(com: np.ndarray, g, yaw: float, xi, tipped: bool) -> ObjectState:
-    """The interface's state of the object frame from the model's CoM state."""
+def _object_state(com: np.ndarray, g, yaw: float, xi, tilt=(0.0, (1.0, 0.0), (0.0, 0.0))):
+    """The interface's state of the object frame from the model's CoM state. `tilt` is the
+    pitch (rad), the object-frame direction it tilts toward (the edge's outward normal) and
+    its rate as a world angular velocity's x, y; roll and pitch (ZYX) tilt the body's z axis
+    by that angle toward that direction."""
     c, s = math.cos(yaw), math.sin(yaw)
     R = np.array([[c, -s], [s, c]])
     r = R @ com  # origin -> CoM
     o = g - r
     v = xi[:2] - xi[2] * np.array([-r[1], r[0]])
-    tilt = math.radians(90.0) if tipped else 0.0
+    theta, (nx, ny), (wx, wy) = tilt
+    roll = math.asin(max(-1.0, min(1.0, -math.sin(theta) * ny)))
+    pitch = math.atan2(math.sin(theta) * nx, math.cos(theta))
     return ObjectState(
         position_m=(float(o[0]), float(o[1]), 0.0),
-        roll_rad=tilt,
-        pitch_rad=0.0,
+        roll_rad=roll,
+        pitch_rad=pitch,
         yaw_rad=float(math.atan2(s, c)),
         linear_velocity_m_s=(float(v[0]), float(v[1]), 0.0),
-        angular_velocity_rad_s=(0.0, 0.0, float(xi[2])),
+        angular_velocity_rad_s=(float(wx), float(wy), float(xi[2])),
     )
+
+
+def _model_tilt(m: PlanarModel) -> tuple:
+    """`_object_state`'s tilt of the model's current state."""
+    if m.flat:
+        return (0.0, (1.0, 0.0), (0.0, 0.0))
+    return (m.tilt_rad, tuple(m.tilt_direction()), m.tilt_axis_rate())
 
 
 class PlanarSimulator(Simulator):
@@ -429,7 +527,7 @@ class PlanarSimulator(Simulator):
     # --- state -----------------------------------------------------------------------------
     def object_state(self) -> ObjectState:
         m = self._require()
-        return _object_state(m.com, m.g, m.yaw, m.xi, m.tipped)
+        return _object_state(m.com, m.g, m.yaw, m.xi, _model_tilt(m))
 
     def set_object_velocity(self, linear_m_s, angular_rad_s) -> None:
         m = self._require()
@@ -456,7 +554,7 @@ class PlanarSimulator(Simulator):
         is clear when the pusher's end position is farther from the outline than the step is
         long (by `_STILL_MARGIN_M`): every point of its straight path is then outside."""
         m = self._require()
-        if m.tipped or m.ms[XI_X] != 0.0 or m.ms[XI_Y] != 0.0 or m.ms[XI_W] != 0.0:
+        if not m.flat or m.ms[XI_X] != 0.0 or m.ms[XI_Y] != 0.0 or m.ms[XI_W] != 0.0:
             return 0
         pts = np.concatenate([self._q[None, :], np.asarray(targets, dtype=float)])
         poly = self.object_state().pose.to_world(m.outline)
@@ -478,18 +576,21 @@ class PlanarSimulator(Simulator):
             rows = np.zeros((len(targets), TRACE_COLS))
             touched = m.run(self._q, targets, dt, mu_p, rows)
             for r in rows:
-                self.trace.append(_object_state(m.com, r[0:2], float(r[2]), r[3:6], r[6] != 0))
+                n = tuple(m.tilt_direction()) if r[6] != 0.0 else (1.0, 0.0)
+                tilt = (float(r[6]), n, (float(r[7]), float(r[8])))
+                self.trace.append(_object_state(m.com, r[0:2], float(r[2]), r[3:6], tilt))
         if len(targets):
             self._q = targets[-1].copy()
-        return touched, 90.0 if m.tipped else 0.0
+        return touched, math.degrees(m.ms[PITCH_MAX])
 
     def close(self) -> None:
         self._model = None
 
 
 # The model's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "planar-3"  # 2: compiled steps; 3: the solver's start and line search
-# (results moved within the solver's tolerance)
+PHYSICS_VERSION = "planar-4"  # 2: compiled steps; 3: the solver's start and line search
+# (results moved within the solver's tolerance); 4: the pitch about a support edge (a push
+# reports tipped by the tilt rule, as on the engines, not at the pitch's onset)
 ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
 PHYSICS_SETTINGS = FrictionSettings()
 

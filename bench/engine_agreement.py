@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/engine_agreement.py [--pushes 400] [--engines pybullet mujoco]
         [--floor-friction model|native]
+    .venv/bin/python bench/engine_agreement.py --tipping [--d-cm 1.3 1.1 1.0 0.9 0.7 0.5 0.3]
 
 Pushes are drawn from the grid of both floors and both speeds (`job_specs` of
 bench/episode_profile.py, a strided slice holding every object and condition): for each
@@ -12,6 +13,11 @@ engine: the median |rotation / planar rotation - 1| over pushes where planar tur
 1 deg, the share of those with the same sign, the largest disagreements, and the cost per push.
 Targets (issue "pybullet and MuJoCo pass the physics contract"): median <= 10%, same sign
 >= 99%, over >= 400 pushes.
+
+`--tipping` instead replays the tipping band of docs/physics.md ("Tipping"): a 3 x 3 x 2 cm
+block on mu 1, its CoM d behind the leading edge, pushed 3 cm through it at 40 and 4 cm/s on
+every backend, with the protocol's tip rule lifted to 89 deg and 1 s of rest after the push,
+to see whether it falls over or lands back: per case the outcome and the largest tilt.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import os
 import statistics
 import sys
 import time
+from dataclasses import replace
 
 sys.path.insert(0, os.path.dirname(__file__))
 
@@ -30,7 +37,9 @@ from episode_profile import job_specs, strided  # noqa: E402
 from comexp.experiment.episode import build_scene  # noqa: E402
 from comexp.experiment.simulator import contact_push, make_simulator  # noqa: E402
 from comexp.method.estimator import ComEstimator  # noqa: E402
+from comexp.method.geometry import box_object  # noqa: E402
 from comexp.method.perception import perceive_first  # noqa: E402
+from comexp.method.scene import FloorSpec, SceneSpec, SimSettings  # noqa: E402
 
 
 def first_push(planar, spec):
@@ -62,12 +71,43 @@ def first_push(planar, spec):
     return scene, cmd
 
 
+def tipping_outcome(backend: str, d_m: float, speed_m_s: float) -> str:
+    """The block's fate: `tips over` or `stays up`, with the largest tilt (deg)."""
+    sim = make_simulator(backend, replace(SimSettings(), tip_limit_deg=89.0))
+    try:
+        sim.build(SceneSpec(FloorSpec(1.0, 1.0), box_object(0.03, 0.03, 0.02, (0.015 - d_m, 0))))
+        out = sim.push(contact_push((-0.015, 0.0), (1.0, 0.0), 0.03, speed_m_s, 0.005))
+        for _ in range(200):
+            sim.step(0.005)
+        over = sim.object_state().tilt_deg > 45.0 or out.status.value == "tipped"
+        return "tips over" if over else f"stays up, {out.max_tilt_deg:.2f}"
+    finally:
+        sim.close()
+
+
+def tipping(d_cm: list[float], engines: list[str]) -> None:
+    backends = ["planar", *engines]
+    print("tipping band: 3 x 3 x 2 cm block, mu 1, pushed 3 cm through its CoM")
+    print()
+    print("| d (cm) | cm/s | " + " | ".join(backends) + " |")
+    print("|---|---|" + "---|" * len(backends))
+    for speed in (0.4, 0.04):
+        for d in d_cm:
+            cells = [tipping_outcome(b, d / 100.0, speed) for b in backends]
+            print(f"| {d:.2f} | {100 * speed:.0f} | " + " | ".join(cells) + " |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pushes", type=int, default=400)
     ap.add_argument("--engines", nargs="+", default=["pybullet", "mujoco"])
     ap.add_argument("--floor-friction", default="model", choices=["model", "native"])
+    ap.add_argument("--tipping", action="store_true", help="the tipping band instead")
+    ap.add_argument("--d-cm", nargs="+", type=float, default=[1.3, 1.1, 1.0, 0.9, 0.7, 0.5, 0.3])
     args = ap.parse_args()
+    if args.tipping:
+        tipping(args.d_cm, args.engines)
+        return
     per_job = math.ceil(args.pushes / 4)
     specs = []
     for floor in ("iso", "aniso"):

@@ -193,6 +193,18 @@ def test_engine_agreement_smoke(monkeypatch, capfd):
     assert figure(r"\| [\d.]+% \| {n}% \|", row) > 50
 
 
+def test_engine_agreement_tipping_smoke(monkeypatch, capfd):
+    out = run_bench(
+        "engine_agreement.py",
+        *("--tipping", "--d-cm", "1.3", "0.3", "--engines", "pybullet"),
+        monkeypatch=monkeypatch,
+        capfd=capfd,
+    )
+    rows = [line for line in out.splitlines() if re.match(r"\| 0\.30 \| 40 \|", line)]
+    assert rows == ["| 0.30 | 40 | tips over | tips over |"]
+    assert figure(r"\| 1\.30 \| 4 \| stays up, {n} \|", out) < 1.0
+
+
 # --- two checkouts ---------------------------------------------------------------------------
 
 
