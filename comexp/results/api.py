@@ -12,11 +12,15 @@ grouping rule), so a notebook groups exactly as the tables and plots do.
 
 from __future__ import annotations
 
+import codecs
 import dataclasses
 import json
 import os
+import queue
+import signal
 import subprocess
 import sys
+import threading
 import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -79,8 +83,11 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
 
     It is the command line itself: `comexp OVERRIDES` runs in a child process (the job's
     Ray, database, reports and printed lines are the command's), then this job's rows are
-    read back by their episode keys. `config_dir` is `--config-dir` (your own objects:
-    DIR/object/NAME.yaml).
+    read back by their episode keys. The child's output is passed on while it runs, as it
+    comes, to this process's `sys.stdout` and `sys.stderr` (a notebook's cell output): its
+    log lines, its progress bar (tqdm's carriage-return updates, forced on with
+    `COMEXP_PROGRESS=bar`) and, on failure, its error. `config_dir` is `--config-dir` (your
+    own objects: DIR/object/NAME.yaml).
 
     Bad input raises ValueError with the command line's one-line message; nothing is
     written then. One job per call: call it once per job of a sweep.
@@ -89,6 +96,7 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
     from hydra.errors import HydraException
 
     from comexp.cli import run as cli
+    from comexp.workers.driver import PROGRESS_ENV
 
     if isinstance(overrides, str):
         raise TypeError("overrides: a list of strings, e.g. ['backend=planar', 'speed=4']")
@@ -108,21 +116,80 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
         if not os.path.isdir(path):
             raise ValueError(f"config_dir {path!r} not found")
         extra = ["--config-dir", path]
-    env = {"RAY_USAGE_STATS_ENABLED": "0", **os.environ}
-    r = subprocess.run(
-        [sys.executable, "-c", "from comexp.cli.run import main; main()", *extra, *args],
-        capture_output=True,
-        text=True,
-        env=env,
+    env = {"RAY_USAGE_STATS_ENABLED": "0", **os.environ, PROGRESS_ENV: "bar"}
+    returncode, stderr = _run_streaming(
+        [sys.executable, "-u", "-c", "from comexp.cli.run import main; main()", *extra, *args],
+        env,
     )
-    sys.stdout.write(r.stdout)
-    if r.returncode != 0:
-        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-        line = lines[-1] if lines else f"comexp exited with {r.returncode}"
+    if returncode != 0:
+        lines = [ln for ln in stderr.splitlines() if ln.strip()]
+        line = lines[-1] if lines else f"comexp exited with {returncode}"
         raise ValueError(line.removeprefix("comexp: error: "))
     db, keys = _job_keys(args, extra[1] if extra else None)
     with ResultsDB(db, readonly=True) as handle:
         return _frame(handle.episodes_by_keys(keys))
+
+
+def _run_streaming(cmd: list[str], env: dict[str, str]) -> tuple[int, str]:
+    """Run `cmd`, passing its stdout and stderr on to `sys.stdout` and `sys.stderr` as they
+    come (chunks, not lines: a progress bar's carriage-return updates end in no newline), from
+    this thread so that a notebook shows them in the running cell. Returns the exit code and
+    the whole stderr. Interrupted (Ctrl-C, a notebook's stop button), the child gets SIGINT
+    (the job stores what it finished, as on a terminal), then is killed after 30 s."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    chunks: queue.Queue[tuple[str, bytes | None]] = queue.Queue()
+
+    def pump(name: str, pipe: typing.IO[bytes]) -> None:
+        fd = pipe.fileno()
+        try:
+            while data := os.read(fd, 65536):
+                chunks.put((name, data))
+        finally:
+            chunks.put((name, None))
+
+    readers = [
+        threading.Thread(target=pump, args=(name, pipe), daemon=True)
+        for name, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr))
+    ]
+    for t in readers:
+        t.start()
+    decoders = {
+        n: codecs.getincrementaldecoder("utf-8")(errors="replace") for n in ("stdout", "stderr")
+    }
+    err: list[str] = []
+
+    def forward(name: str, data: bytes | None) -> None:
+        text = decoders[name].decode(data or b"", final=data is None)
+        if not text:
+            return
+        if name == "stderr":
+            err.append(text)
+        stream = getattr(sys, name)
+        stream.write(text)
+        stream.flush()
+
+    try:
+        open_pipes = len(readers)
+        while open_pipes:
+            name, data = chunks.get()
+            forward(name, data)
+            open_pipes -= data is None
+        returncode = proc.wait()
+    except BaseException:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        raise
+    finally:
+        for t, pipe in zip(readers, (proc.stdout, proc.stderr), strict=True):
+            t.join(timeout=1)
+            if not t.is_alive() and pipe is not None:  # never under a reader's os.read
+                pipe.close()
+    return returncode, "".join(err)
 
 
 def _job_keys(args: list[str], config_dir: str | None) -> tuple[str, list[str]]:
