@@ -13,6 +13,7 @@ grouping rule), so a notebook groups exactly as the tables and plots do.
 from __future__ import annotations
 
 import codecs
+import contextlib
 import dataclasses
 import json
 import os
@@ -21,6 +22,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -134,12 +136,16 @@ def _run_streaming(cmd: list[str], env: dict[str, str]) -> tuple[int, str]:
     """Run `cmd`, passing its stdout and stderr on to `sys.stdout` and `sys.stderr` as they
     come (chunks, not lines: a progress bar's carriage-return updates end in no newline), from
     this thread so that a notebook shows them in the running cell. Returns the exit code and
-    the whole stderr. Interrupted (Ctrl-C, a notebook's stop button), the child gets SIGINT
-    (the job stores what it finished, as on a terminal), then is killed after 30 s."""
+    the whole stderr.
+
+    Interrupted (Ctrl-C on a terminal, a notebook's stop button: both signal the whole
+    process group, the child too), the child is left to store what it finished and exit,
+    its lines still passed on; a child still running 10 s later gets SIGINT, and is killed
+    30 s after that (or at once on a second interrupt)."""
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
     chunks: queue.Queue[tuple[str, bytes | None]] = queue.Queue()
 
-    def pump(name: str, pipe: typing.IO[bytes]) -> None:
+    def read(name: str, pipe: typing.IO[bytes]) -> None:
         fd = pipe.fileno()
         try:
             while data := os.read(fd, 65536):
@@ -147,45 +153,62 @@ def _run_streaming(cmd: list[str], env: dict[str, str]) -> tuple[int, str]:
         finally:
             chunks.put((name, None))
 
+    pipes = {"stdout": proc.stdout, "stderr": proc.stderr}
     readers = [
-        threading.Thread(target=pump, args=(name, pipe), daemon=True)
-        for name, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr))
+        threading.Thread(target=read, args=item, daemon=True, name=f"comexp.run {item[0]}")
+        for item in pipes.items()
     ]
     for t in readers:
         t.start()
-    decoders = {
-        n: codecs.getincrementaldecoder("utf-8")(errors="replace") for n in ("stdout", "stderr")
-    }
+    decoders = {n: codecs.getincrementaldecoder("utf-8")(errors="replace") for n in pipes}
     err: list[str] = []
+    still_open = set(pipes)
 
-    def forward(name: str, data: bytes | None) -> None:
-        text = decoders[name].decode(data or b"", final=data is None)
-        if not text:
-            return
-        if name == "stderr":
-            err.append(text)
-        stream = getattr(sys, name)
-        stream.write(text)
-        stream.flush()
+    def pass_on(until: float | None = None) -> None:
+        """Forward what arrives until both pipes close (or `until`, a monotonic time)."""
+        while still_open:
+            wait = None if until is None else until - time.monotonic()
+            if wait is not None and wait <= 0:
+                return
+            try:
+                name, data = chunks.get(timeout=wait)
+            except queue.Empty:
+                return
+            if data is None:
+                still_open.discard(name)
+            text = decoders[name].decode(data or b"", final=data is None)
+            if text:
+                if name == "stderr":
+                    err.append(text)
+                stream = getattr(sys, name)
+                stream.write(text)
+                stream.flush()
+
+    def until_exit(grace_s: float) -> None:
+        until = time.monotonic() + grace_s
+        while proc.poll() is None and time.monotonic() < until:
+            pass_on(min(until, time.monotonic() + 0.1))
 
     try:
-        open_pipes = len(readers)
-        while open_pipes:
-            name, data = chunks.get()
-            forward(name, data)
-            open_pipes -= data is None
+        pass_on()
         returncode = proc.wait()
     except BaseException:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
+        try:
+            until_exit(10.0)  # it got the same interrupt, usually
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                until_exit(30.0)
+        except BaseException:  # a second interrupt, or the caller's stream fails: stop now
+            pass
+        finally:
+            if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+        with contextlib.suppress(BaseException):
+            pass_on(time.monotonic() + 1.0)  # its last lines ("interrupted; ... stored")
         raise
     finally:
-        for t, pipe in zip(readers, (proc.stdout, proc.stderr), strict=True):
+        for t, pipe in zip(readers, pipes.values(), strict=True):
             t.join(timeout=1)
             if not t.is_alive() and pipe is not None:  # never under a reader's os.read
                 pipe.close()
