@@ -134,85 +134,102 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
 
 def _run_streaming(cmd: list[str], env: dict[str, str]) -> tuple[int, str]:
     """Run `cmd`, passing its stdout and stderr on to `sys.stdout` and `sys.stderr` as they
-    come (chunks, not lines: a progress bar's carriage-return updates end in no newline), from
-    this thread so that a notebook shows them in the running cell. Returns the exit code and
-    the whole stderr.
+    come; returns the exit code and the whole stderr (`_PassedOn`)."""
+    child = _PassedOn(cmd, env)
+    try:
+        child.pass_on()
+        returncode = child.proc.wait()
+    except BaseException:
+        child.stop()
+        raise
+    finally:
+        child.close()
+    return returncode, "".join(child.err)
+
+
+class _PassedOn:
+    """A child process whose output is passed on to `sys.stdout` and `sys.stderr` as it
+    comes: chunks, not lines (a progress bar's carriage-return updates end in no newline),
+    read by one thread per pipe and written from the caller's thread, so that a notebook
+    shows them in the running cell.
 
     Interrupted (Ctrl-C on a terminal, a notebook's stop button: both signal the whole
     process group, the child too), the child is left to store what it finished and exit,
     its lines still passed on; a child still running 10 s later gets SIGINT, and is killed
     30 s after that (or at once on a second interrupt)."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
-    chunks: queue.Queue[tuple[str, bytes | None]] = queue.Queue()
 
-    def read(name: str, pipe: typing.IO[bytes]) -> None:
+    def __init__(self, cmd: list[str], env: dict[str, str]) -> None:
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+        self.pipes = {"stdout": self.proc.stdout, "stderr": self.proc.stderr}
+        self.chunks: queue.Queue[tuple[str, bytes | None]] = queue.Queue()
+        self.decoders = {
+            n: codecs.getincrementaldecoder("utf-8")(errors="replace") for n in self.pipes
+        }
+        self.still_open = set(self.pipes)
+        self.err: list[str] = []
+        self.readers = [
+            threading.Thread(
+                target=self._read, args=item, daemon=True, name=f"comexp.run {item[0]}"
+            )
+            for item in self.pipes.items()
+        ]
+        for t in self.readers:
+            t.start()
+
+    def _read(self, name: str, pipe: typing.IO[bytes]) -> None:
         fd = pipe.fileno()
         try:
             while data := os.read(fd, 65536):
-                chunks.put((name, data))
+                self.chunks.put((name, data))
         finally:
-            chunks.put((name, None))
+            self.chunks.put((name, None))
 
-    pipes = {"stdout": proc.stdout, "stderr": proc.stderr}
-    readers = [
-        threading.Thread(target=read, args=item, daemon=True, name=f"comexp.run {item[0]}")
-        for item in pipes.items()
-    ]
-    for t in readers:
-        t.start()
-    decoders = {n: codecs.getincrementaldecoder("utf-8")(errors="replace") for n in pipes}
-    err: list[str] = []
-    still_open = set(pipes)
-
-    def pass_on(until: float | None = None) -> None:
+    def pass_on(self, until: float | None = None) -> None:
         """Forward what arrives until both pipes close (or `until`, a monotonic time)."""
-        while still_open:
+        while self.still_open:
             wait = None if until is None else until - time.monotonic()
             if wait is not None and wait <= 0:
                 return
             try:
-                name, data = chunks.get(timeout=wait)
+                name, data = self.chunks.get(timeout=wait)
             except queue.Empty:
                 return
             if data is None:
-                still_open.discard(name)
-            text = decoders[name].decode(data or b"", final=data is None)
+                self.still_open.discard(name)
+            text = self.decoders[name].decode(data or b"", final=data is None)
             if text:
                 if name == "stderr":
-                    err.append(text)
+                    self.err.append(text)
                 stream = getattr(sys, name)
                 stream.write(text)
                 stream.flush()
 
-    def until_exit(grace_s: float) -> None:
+    def _until_exit(self, grace_s: float) -> None:
         until = time.monotonic() + grace_s
-        while proc.poll() is None and time.monotonic() < until:
-            pass_on(min(until, time.monotonic() + 0.1))
+        while self.proc.poll() is None and time.monotonic() < until:
+            self.pass_on(min(until, time.monotonic() + 0.1))
 
-    try:
-        pass_on()
-        returncode = proc.wait()
-    except BaseException:
+    def stop(self) -> None:
+        """The caller was interrupted: let the child finish storing, then make it."""
         try:
-            until_exit(10.0)  # it got the same interrupt, usually
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                until_exit(30.0)
+            self._until_exit(10.0)  # it got the same interrupt, usually
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGINT)
+                self._until_exit(30.0)
         except BaseException:  # a second interrupt, or the caller's stream fails: stop now
             pass
         finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
         with contextlib.suppress(BaseException):
-            pass_on(time.monotonic() + 1.0)  # its last lines ("interrupted; ... stored")
-        raise
-    finally:
-        for t, pipe in zip(readers, pipes.values(), strict=True):
+            self.pass_on(time.monotonic() + 1.0)  # its last lines ("interrupted; ... stored")
+
+    def close(self) -> None:
+        for t, pipe in zip(self.readers, self.pipes.values(), strict=True):
             t.join(timeout=1)
             if not t.is_alive() and pipe is not None:  # never under a reader's os.read
                 pipe.close()
-    return returncode, "".join(err)
 
 
 def _job_keys(args: list[str], config_dir: str | None) -> tuple[str, list[str]]:
