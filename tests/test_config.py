@@ -311,8 +311,9 @@ PROSE_DEFAULTS = [
         r"`episode\.recenter_beyond_cm` \(config; ([\d.]+) cm\)",
     ),
 ]
-# Keys the README's config table must list with their default.
-README_TABLE_KEYS = {
+# Keys the knob table (docs/operations.md, "Knobs") must list with their default.
+KNOB_TABLE = ("docs/operations.md", "## Knobs")
+KNOB_TABLE_KEYS = {
     "backend",
     "floor",
     "speed",
@@ -345,12 +346,17 @@ def _config_value(cfg, key: str):
     return OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
 
 
-def _readme_table_defaults() -> dict[str, str]:
-    """`| `name`[, `.knob`...] | meaning | `default`[, `default`...] |` rows of the README."""
+def _knob_table_defaults() -> dict[str, str]:
+    """`| `name`[, `.knob`...] | meaning | `default`[, `default`...] |` rows of the knob table
+    (its section of docs/operations.md, up to the next heading)."""
     import re
 
+    rel, heading = KNOB_TABLE
+    text = (ROOT / rel).read_text()
+    assert f"\n{heading}\n" in text, f"{rel} has no section {heading!r}"
+    section = text.split(f"\n{heading}\n", 1)[1].split("\n#", 1)[0]
     out: dict[str, str] = {}
-    for line in (ROOT / "README.md").read_text().splitlines():
+    for line in section.splitlines():
         cells = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
         if len(cells) != 3 or not cells[0].startswith("`"):
             continue
@@ -366,20 +372,20 @@ def _readme_table_defaults() -> dict[str, str]:
 
 
 def test_documented_defaults_are_the_configs() -> None:
-    """A default the README's config table or the docs' prose quotes (e.g.
+    """A default the knob table (docs/operations.md) or the docs' prose quotes (e.g.
     `grid.coms_per_object` 10, `workers` 2, `camera.fps` 30) is the composed config's."""
     import re
 
     import yaml
 
     cfg = _compose()
-    documented = _readme_table_defaults()
-    assert set(documented) >= README_TABLE_KEYS, README_TABLE_KEYS - set(documented)
+    documented = _knob_table_defaults()
+    assert set(documented) >= KNOB_TABLE_KEYS, KNOB_TABLE_KEYS - set(documented)
     wrong = []
     for key, text in sorted(documented.items()):
         value = _config_value(cfg, key)
         if yaml.safe_load(text) != value:
-            wrong.append(f"README.md: {key} documented {text!r}, config {value!r}")
+            wrong.append(f"{KNOB_TABLE[0]}: {key} documented {text!r}, config {value!r}")
     for key, rel, pattern in PROSE_DEFAULTS:
         m = re.search(pattern, (ROOT / rel).read_text())
         assert m, f"{rel}: the default of {key} is no longer quoted as {pattern!r}"

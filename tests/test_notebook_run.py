@@ -1,12 +1,16 @@
 """`comexp.run(overrides)`: the README's notebook example runs a tiny planar job through the
 command line's own path and returns exactly the rows `comexp` itself stores for the same
-overrides (this job's only), and bad input is one ValueError that writes nothing."""
+overrides (this job's only), passes the job's output on while it runs (log lines, the progress
+bar's carriage-return updates) through `sys.stdout` / `sys.stderr`, and bad input is one
+ValueError that writes nothing."""
 
 from __future__ import annotations
 
 import os
 import re
 import sqlite3
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,6 +32,26 @@ def _readme_block() -> str:
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
     (block,) = [b for b in blocks if "comexp.run(" in b]
     return block
+
+
+class Recorder:
+    """A notebook's `sys.stdout` / `sys.stderr` stand-in: every write, with whether the job's
+    child process was still running when it arrived."""
+
+    def __init__(self, children: list[subprocess.Popen]) -> None:
+        self.children = children
+        self.writes: list[tuple[bool, str]] = []
+
+    def write(self, text: str) -> int:
+        running = bool(self.children) and self.children[-1].poll() is None
+        self.writes.append((running, text))
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+    def text(self) -> str:
+        return "".join(t for _, t in self.writes)
 
 
 def _overrides(block: str) -> list[str]:
@@ -52,9 +76,21 @@ def runs(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Iterator[dict]:
     cwd = os.getcwd()
     os.chdir(nb)
     scope: dict = {}
+    children: list[subprocess.Popen] = []
+
+    class Popen(subprocess.Popen):  # keeps the child, so a write can ask if it still runs
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            children.append(self)
+
+    out, err = Recorder(children), Recorder(children)
     try:
         package.run = run  # until comexp/__init__.py exports it (no-op afterwards)
-        exec(compile(block, "README.md", "exec"), scope)  # noqa: S102 - our own document
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(subprocess, "Popen", Popen)
+            mp.setattr(sys, "stdout", out)
+            mp.setattr(sys, "stderr", err)
+            exec(compile(block, "README.md", "exec"), scope)  # noqa: S102 - our own document
     finally:
         os.chdir(cwd)
     r = comexp_in_process(cli, *overrides)
@@ -65,6 +101,9 @@ def runs(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Iterator[dict]:
         "nb_db": nb_db,
         "nb_dir": nb,
         "cli_db": cli / db_arg.removeprefix("db="),
+        "children": children,
+        "out": out,
+        "err": err,
     }
 
 
@@ -99,6 +138,25 @@ def test_run_returns_the_rows_the_command_line_stores(runs: dict) -> None:
     assert list((runs["nb_dir"] / "results" / "runs").glob("*/summary.csv"))
 
 
+def test_the_jobs_output_is_passed_on_while_it_runs(runs: dict) -> None:
+    """Not only when the job ends: the job's first log line and its progress bar at 0/2 come
+    before any episode runs, so they reach the caller's streams while the child is still
+    running (printing everything at the end, every write would find it exited). The bar's
+    updates keep their carriage returns (a notebook redraws the line), the printed results
+    follow, and nothing goes to the caller's streams outside `sys.stdout` / `sys.stderr`."""
+    (child,) = runs["children"]
+    assert child.returncode == 0
+    out, err = runs["out"], runs["err"]
+    first_log = next(i for i, (_, t) in enumerate(out.writes) if "to run" in t)
+    assert out.writes[first_log][0], "the job's first log line came after the job ended"
+    bar = [(running, t) for running, t in err.writes if "\r" in t]
+    assert bar, f"no progress bar on stderr: {err.text()!r}"
+    assert re.search(r"\r[^\r\n]*0/2", err.text()) and re.search(r"\r[^\r\n]*2/2", err.text())
+    assert bar[0][0] and "0/2" in bar[0][1], "the progress bar came after the job ended"
+    assert re.search(r": ran 2 episodes in [\d.]+ s \(0 failed\), stored 2\n", out.text())
+    assert "reports (" in out.text()
+
+
 def test_a_rerun_returns_the_stored_rows_without_running(runs: dict, monkeypatch) -> None:
     monkeypatch.chdir(runs["nb_dir"])
 
@@ -112,23 +170,34 @@ def test_a_rerun_returns_the_stored_rows_without_running(runs: dict, monkeypatch
 
 
 @pytest.mark.parametrize(
-    ("overrides", "message"),
+    ("overrides", "message", "child"),
     [
-        (["backend=planar", "workers=0"], "workers must be a count >= 1 or auto, got 0"),
-        (["backend=nope"], "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)"),
-        (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'"),
-        (["speed=40,4"], "comexp.run runs one job; call it once per value of: ['speed=40,4']"),
-        (["-m", "speed=4"], "comexp.run takes overrides only"),
+        (["backend=planar", "workers=0"], "workers must be a count >= 1 or auto, got 0", True),
+        (
+            ["backend=nope"],
+            "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)",
+            True,
+        ),
+        (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'", True),
+        (
+            ["speed=40,4"],
+            "comexp.run runs one job; call it once per value of: ['speed=40,4']",
+            False,
+        ),
+        (["-m", "speed=4"], "comexp.run takes overrides only", False),
     ],
 )
 def test_bad_input_is_one_value_error_and_writes_nothing(
-    tmp_path: Path, monkeypatch, overrides: list[str], message: str
+    tmp_path: Path, monkeypatch, capsys, overrides: list[str], message: str, child: bool
 ) -> None:
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ValueError) as err:
         run([*overrides, "db=bad.db"])
     assert str(err.value).startswith(message) and "\n" not in str(err.value)
     assert list(tmp_path.iterdir()) == []
+    # refused by the command: its error line was shown on stderr too; before it: nothing
+    shown = capsys.readouterr().err
+    assert shown == (f"comexp: error: {err.value}\n" if child else "")
 
 
 def test_a_string_is_not_a_list_of_overrides() -> None:

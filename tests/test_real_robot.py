@@ -224,11 +224,15 @@ def test_end_to_end_rectangle_lands_near_the_true_com(gain_deg_per_cm):
 # --- (c) the documented examples run -------------------------------------------------------------
 
 
+def _doc_blocks() -> list[str]:
+    return re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+
+
 def test_the_documented_examples_run(capsys):
-    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
-    assert len(blocks) == 2, "the world-frame example and Algorithm 1 in the loop"
+    blocks = _doc_blocks()
+    assert len(blocks) == 3, "the world-frame example, Algorithm 1 in the loop, object frame"
     scope: dict = {}
-    for block in blocks:  # in order, in one scope, as a reader would paste them
+    for block in blocks[:2]:  # in order, in one scope, as a reader would paste them
         exec(compile(block, str(DOC), "exec"), scope)  # noqa: S102 - our own document
     result = scope["result"]
     # the example's log was made with the CoM at (2.2, -1.1) cm, as the page says
@@ -241,3 +245,18 @@ def test_the_documented_examples_run(capsys):
     assert first.direction == pytest.approx((0.0, 1.0), abs=2e-3)
     assert scope["estimator"].region_px < len(region_from_outline(scope["outline_m"], 0.0027))
     assert "CoM, object frame" in capsys.readouterr().out
+
+
+def test_the_object_frame_example_runs():
+    """`estimate_com` on pushes already in the object frame (the page's own region grid)
+    gives a sensible answer."""
+    (block,) = [b for b in _doc_blocks() if "ObservedPush(" in b]
+    scope: dict = {}
+    exec(compile(block, str(DOC), "exec"), scope)  # noqa: S102 - our own document
+    region, estimate = scope["region"], scope["estimate_m"]
+    # a CW rotation from a +x push at y = 1 cm puts the CoM below that line; the small
+    # rotation of the +y push at x = 0 keeps the 10 px band around x = 0
+    assert len(region) > 0
+    assert np.all(region[:, 1] < 0.01)
+    assert np.all(np.abs(region[:, 0]) <= 10 * 0.0027 + 1e-9)
+    assert np.allclose(estimate, region.mean(axis=0))

@@ -285,4 +285,24 @@ def test_run_and_store_counts_failures() -> None:
     assert "6/6 done, 2 failed" in progress.line(stats)
 
 
+@pytest.mark.parametrize(("env", "bar"), [("bar", True), ("log", False), ("", False)])
+def test_comexp_progress_chooses_the_bar_off_a_terminal(monkeypatch, env: str, bar: bool) -> None:
+    """`COMEXP_PROGRESS=bar` (what `comexp.run` sets for its child, whose stderr is a pipe)
+    draws tqdm's bar; `log` or unset off a terminal: the periodic log lines."""
+    import io
+
+    from comexp.workers.driver import Progress
+
+    monkeypatch.setenv("COMEXP_PROGRESS", env)
+    err = io.StringIO()  # not a terminal
+    monkeypatch.setattr("sys.stderr", err)
+    progress = Progress(3, "t")
+    try:
+        assert (progress._bar is not None) is bar
+    finally:
+        progress.close()
+    if bar:
+        assert "\r" in err.getvalue() and "0/3" in err.getvalue()
+
+
 # The real multi-node cluster and its faults: tests/test_cluster.py.

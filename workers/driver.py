@@ -1,12 +1,13 @@
 """The driver's loop: results from the pool handed to the store in chunks as they arrive, so an
 interrupted job keeps what it finished, and the progress display (tqdm on a terminal, log lines
-otherwise)."""
+otherwise; `COMEXP_PROGRESS=bar` or `log` chooses)."""
 
 from __future__ import annotations
 
 import collections
 import logging
 import math
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -29,8 +30,21 @@ class RunStats:
     failures: collections.Counter[str] = field(default_factory=collections.Counter)
 
 
+PROGRESS_ENV = "COMEXP_PROGRESS"
+
+
+def _bar_wanted() -> bool:
+    """`COMEXP_PROGRESS=bar` (`comexp.run` sets it: its caller's stderr is a notebook's, not
+    the pipe the child sees) or `log`; otherwise a bar when stderr is a terminal."""
+    choice = os.environ.get(PROGRESS_ENV, "").strip().lower()
+    if choice in ("bar", "log"):
+        return choice == "bar"
+    return sys.stderr.isatty()
+
+
 class Progress:
-    """tqdm on a terminal; plain periodic log lines otherwise (log files, CI)."""
+    """tqdm on a terminal; plain periodic log lines otherwise (log files, CI).
+    `COMEXP_PROGRESS=bar` or `log` overrides the terminal test."""
 
     def __init__(self, total: int, desc: str = "", *, tty: bool | None = None, every_s=10.0):
         self.total = total
@@ -39,7 +53,7 @@ class Progress:
         self.t0 = time.monotonic()
         self._last = self.t0
         self._bar = None
-        if tty if tty is not None else sys.stderr.isatty():
+        if tty if tty is not None else _bar_wanted():
             from tqdm import tqdm
 
             self._bar = tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True, smoothing=0.1)

@@ -12,11 +12,17 @@ grouping rule), so a notebook groups exactly as the tables and plots do.
 
 from __future__ import annotations
 
+import codecs
+import contextlib
 import dataclasses
 import json
 import os
+import queue
+import signal
 import subprocess
 import sys
+import threading
+import time
 import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -79,8 +85,11 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
 
     It is the command line itself: `comexp OVERRIDES` runs in a child process (the job's
     Ray, database, reports and printed lines are the command's), then this job's rows are
-    read back by their episode keys. `config_dir` is `--config-dir` (your own objects:
-    DIR/object/NAME.yaml).
+    read back by their episode keys. The child's output is passed on while it runs, as it
+    comes, to this process's `sys.stdout` and `sys.stderr` (a notebook's cell output): its
+    log lines, its progress bar (tqdm's carriage-return updates, forced on with
+    `COMEXP_PROGRESS=bar`) and, on failure, its error. `config_dir` is `--config-dir` (your
+    own objects: DIR/object/NAME.yaml).
 
     Bad input raises ValueError with the command line's one-line message; nothing is
     written then. One job per call: call it once per job of a sweep.
@@ -89,6 +98,7 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
     from hydra.errors import HydraException
 
     from comexp.cli import run as cli
+    from comexp.workers.driver import PROGRESS_ENV
 
     if isinstance(overrides, str):
         raise TypeError("overrides: a list of strings, e.g. ['backend=planar', 'speed=4']")
@@ -108,21 +118,118 @@ def run(overrides: Sequence[str] = (), *, config_dir: str | os.PathLike[str] | N
         if not os.path.isdir(path):
             raise ValueError(f"config_dir {path!r} not found")
         extra = ["--config-dir", path]
-    env = {"RAY_USAGE_STATS_ENABLED": "0", **os.environ}
-    r = subprocess.run(
-        [sys.executable, "-c", "from comexp.cli.run import main; main()", *extra, *args],
-        capture_output=True,
-        text=True,
-        env=env,
+    env = {"RAY_USAGE_STATS_ENABLED": "0", **os.environ, PROGRESS_ENV: "bar"}
+    returncode, stderr = _run_streaming(
+        [sys.executable, "-u", "-c", "from comexp.cli.run import main; main()", *extra, *args],
+        env,
     )
-    sys.stdout.write(r.stdout)
-    if r.returncode != 0:
-        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-        line = lines[-1] if lines else f"comexp exited with {r.returncode}"
+    if returncode != 0:
+        lines = [ln for ln in stderr.splitlines() if ln.strip()]
+        line = lines[-1] if lines else f"comexp exited with {returncode}"
         raise ValueError(line.removeprefix("comexp: error: "))
     db, keys = _job_keys(args, extra[1] if extra else None)
     with ResultsDB(db, readonly=True) as handle:
         return _frame(handle.episodes_by_keys(keys))
+
+
+def _run_streaming(cmd: list[str], env: dict[str, str]) -> tuple[int, str]:
+    """Run `cmd`, passing its stdout and stderr on to `sys.stdout` and `sys.stderr` as they
+    come; returns the exit code and the whole stderr (`_PassedOn`)."""
+    child = _PassedOn(cmd, env)
+    try:
+        child.pass_on()
+        returncode = child.proc.wait()
+    except BaseException:
+        child.stop()
+        raise
+    finally:
+        child.close()
+    return returncode, "".join(child.err)
+
+
+class _PassedOn:
+    """A child process whose output is passed on to `sys.stdout` and `sys.stderr` as it
+    comes: chunks, not lines (a progress bar's carriage-return updates end in no newline),
+    read by one thread per pipe and written from the caller's thread, so that a notebook
+    shows them in the running cell.
+
+    Interrupted (Ctrl-C on a terminal, a notebook's stop button: both signal the whole
+    process group, the child too), the child is left to store what it finished and exit,
+    its lines still passed on; a child still running 10 s later gets SIGINT, and is killed
+    30 s after that (or at once on a second interrupt)."""
+
+    def __init__(self, cmd: list[str], env: dict[str, str]) -> None:
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+        self.pipes = {"stdout": self.proc.stdout, "stderr": self.proc.stderr}
+        self.chunks: queue.Queue[tuple[str, bytes | None]] = queue.Queue()
+        self.decoders = {
+            n: codecs.getincrementaldecoder("utf-8")(errors="replace") for n in self.pipes
+        }
+        self.still_open = set(self.pipes)
+        self.err: list[str] = []
+        self.readers = [
+            threading.Thread(
+                target=self._read, args=item, daemon=True, name=f"comexp.run {item[0]}"
+            )
+            for item in self.pipes.items()
+        ]
+        for t in self.readers:
+            t.start()
+
+    def _read(self, name: str, pipe: typing.IO[bytes]) -> None:
+        fd = pipe.fileno()
+        try:
+            while data := os.read(fd, 65536):
+                self.chunks.put((name, data))
+        finally:
+            self.chunks.put((name, None))
+
+    def pass_on(self, until: float | None = None) -> None:
+        """Forward what arrives until both pipes close (or `until`, a monotonic time)."""
+        while self.still_open:
+            wait = None if until is None else until - time.monotonic()
+            if wait is not None and wait <= 0:
+                return
+            try:
+                name, data = self.chunks.get(timeout=wait)
+            except queue.Empty:
+                return
+            if data is None:
+                self.still_open.discard(name)
+            text = self.decoders[name].decode(data or b"", final=data is None)
+            if text:
+                if name == "stderr":
+                    self.err.append(text)
+                stream = getattr(sys, name)
+                stream.write(text)
+                stream.flush()
+
+    def _until_exit(self, grace_s: float) -> None:
+        until = time.monotonic() + grace_s
+        while self.proc.poll() is None and time.monotonic() < until:
+            self.pass_on(min(until, time.monotonic() + 0.1))
+
+    def stop(self) -> None:
+        """The caller was interrupted: let the child finish storing, then make it."""
+        try:
+            self._until_exit(10.0)  # it got the same interrupt, usually
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGINT)
+                self._until_exit(30.0)
+        except BaseException:  # a second interrupt, or the caller's stream fails: stop now
+            pass
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+        with contextlib.suppress(BaseException):
+            self.pass_on(time.monotonic() + 1.0)  # its last lines ("interrupted; ... stored")
+
+    def close(self) -> None:
+        for t, pipe in zip(self.readers, self.pipes.values(), strict=True):
+            t.join(timeout=1)
+            if not t.is_alive() and pipe is not None:  # never under a reader's os.read
+                pipe.close()
 
 
 def _job_keys(args: list[str], config_dir: str | None) -> tuple[str, list[str]]:
