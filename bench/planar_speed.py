@@ -16,6 +16,11 @@ second time with the object's start moved by 1e-15 m: the model's own sensitivit
 rounding (its solver tolerances and stick/slip decisions), the floor under which two
 versions that round differently cannot agree.
 
+`--resolutions` instead runs every push at the default resolution (400 footprint samples,
+1 ms steps) and at coarser ones (fewer samples, longer steps, both): per resolution the CPU
+time against the default's and the largest rotation change at 40 and at 4 cm/s, what the
+model's cheaper settings would buy and cost (docs/performance.md, "planar").
+
 `--pushes N` runs N of the 54 pushes, spread over the list (tests/test_bench.py's smoke run).
 """
 
@@ -30,10 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
+from comexp.backends.floor_friction import FrictionSettings
 from comexp.backends.planar_sim import PlanarSimulator
 from comexp.experiment.objects import com_point, load_objects
 from comexp.experiment.simulator import contact_push
-from comexp.method.scene import FloorSpec, SceneSpec
+from comexp.method.scene import FloorSpec, SceneSpec, SimSettings
 
 OBJECTS = ("rect_8x5", "l_shape", "triangle_right_11x7")
 FLOORS = ((0.1, 0.1), (1.0, 1.0), (0.1, 1.0))
@@ -95,12 +101,43 @@ def self_noise(sim_cls: type, all_cases) -> None:
     print(f"max |d rotation| under a 1e-15 m nudge: {worst:.2e} deg ({worst_label})")
 
 
+# (footprint samples, step in ms) against the default (400, 1)
+RESOLUTIONS = ((400, 1.0), (200, 1.0), (100, 1.0), (400, 2.0), (400, 4.0), (100, 4.0))
+
+
+def resolutions(all_cases) -> None:
+    """CPU time and rotation change of each resolution against the default's."""
+    print("| samples | step (ms) | CPU vs default | max abs(d rot) 40 cm/s | 4 cm/s | median |")
+    print("|---|---|---|---|---|---|")
+    base = None
+    for samples, step_ms in RESOLUTIONS:
+        sim = PlanarSimulator(
+            SimSettings(timestep_s=step_ms / 1e3), replace(FrictionSettings(), samples=samples)
+        )
+        rots, cpu = [], 0.0
+        for _, scene, cmd in all_cases:
+            sim.build(scene)
+            t0 = time.process_time()
+            rots.append(sim.push(cmd).rotation_deg)
+            cpu += time.process_time() - t0
+        rots = np.array(rots)
+        base = base or (rots, cpu)
+        d = np.abs(rots - base[0])
+        fast = np.array(["v=40" in label for label, _, _ in all_cases])
+        worst = [f"{d[m].max():.3f}" if m.any() else "-" for m in (fast, ~fast)]
+        print(
+            f"| {samples} | {step_ms:g} | x{base[1] / cpu:.2f} | {worst[0]} | {worst[1]} | "
+            f"{np.median(d):.4f} |"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline", type=Path, help="directory with an older planar_sim.py")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per push (best kept)")
     ap.add_argument("--self-noise", action="store_true", help="one version vs itself, nudged")
     ap.add_argument("--pushes", type=int, help="only this many of the pushes, spread out")
+    ap.add_argument("--resolutions", action="store_true", help="coarser settings vs default")
     args = ap.parse_args()
     old_cls = load_baseline(args.baseline) if args.baseline else None
     all_cases = cases()
@@ -108,6 +145,11 @@ def main() -> None:
         all_cases = all_cases[:: -(-len(all_cases) // args.pushes)][: args.pushes]
     if args.self_noise:
         self_noise(old_cls or PlanarSimulator, all_cases)
+        return
+    if args.resolutions:
+        for _, scene, cmd in all_cases[:2]:  # warm-up: compile / load the kernels
+            run(PlanarSimulator, scene, cmd)
+        resolutions(all_cases)
         return
     for _, scene, cmd in all_cases[:2]:  # warm-up: compile / load the kernels
         run(PlanarSimulator, scene, cmd)

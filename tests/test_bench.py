@@ -153,6 +153,11 @@ def test_planar_speed_smoke(monkeypatch, capfd):
         "planar_speed.py", "--pushes", "2", "--self-noise", monkeypatch=monkeypatch, capfd=capfd
     )
     assert 0 <= figure(r"under a 1e-15 m nudge: {n} deg", out) < 0.1
+    out = run_bench(
+        "planar_speed.py", "--pushes", "2", "--resolutions", monkeypatch=monkeypatch, capfd=capfd
+    )
+    assert "| 400 | 1 | x1.00 | 0.000 | 0.000 | 0.0000 |" in out  # the default against itself
+    assert figure(r"\| 100 \| 4 \| x{n} \|", out) > 1.0  # coarser is cheaper
 
 
 def test_tracking_smoke(monkeypatch, capfd):
