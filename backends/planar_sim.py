@@ -36,6 +36,9 @@ model"), so that the 3-D engines can be checked against it:
   sustained push are solved together; the pressure follows the sustained forces only.
 - **The camera** is the exact ray-cast of the prism (`comexp.method.rendering.render_prism_depth`).
 
+Where the pusher and the object move slowly (quasi-static pushing, the end of a slide) one
+step covers five of the protocol's (`SlowSteps`; its accuracy in docs/physics.md).
+
 One compiled call (Numba) runs many steps: contact, impact, the friction solves with the
 pusher constraint, the pressure fixed point, integration and the penetration projection, on
 preallocated state arrays; a handful of 3-variable Newton iterations per step.
@@ -44,6 +47,7 @@ preallocated state arrays; a handful of 3-variable Newton iterations per step.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -221,7 +225,6 @@ def _pitch_step(geo, pg, ms, cx, cy, fpx, fpy, rx, ry, dt):
     if theta >= pg.edge_over[e]:  # the CoM is above the edge: it falls over
         ms[OVER] = 1.0
     ms[PITCH], ms[PITCH_W] = theta, w
-    ms[PITCH_MAX] = max(ms[PITCH_MAX], TIPPED_OVER_RAD if ms[OVER] != 0.0 else theta)
 
 
 @njit(cache=True)
@@ -320,23 +323,47 @@ def _step(geo, fs, normal, dxw, dyw, pg, ms, q0x, q0y, q1x, q1y, dt, mu_p):
 
 
 @njit(cache=True)
-def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace):
-    """Steps to each of `targets` in turn from the pusher at `q_start`; whether the pusher
-    pushed in any of them. `trace` (n x TRACE_COLS, or 0 rows: none) gets every step's state."""
+def _slow(pg, ms, qx, qy, targets, i, k, dt, v):
+    """Whether targets[i : i + k] may be one step (`SlowSteps`): the object flat and its
+    fastest point, and the pusher in each of those steps, no faster than v."""
+    if ms[PITCH] != 0.0 or ms[PITCH_W] != 0.0 or ms[OVER] != 0.0:
+        return False
+    if math.hypot(ms[XI_X], ms[XI_Y]) + abs(ms[XI_W]) * pg.r_bound > v:
+        return False
+    for j in range(i, i + k):
+        if math.hypot(targets[j, 0] - qx, targets[j, 1] - qy) > v * dt:
+            return False
+        qx, qy = targets[j, 0], targets[j, 1]
+    return True
+
+
+@njit(cache=True)
+def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace, group, v_slow):
+    """Steps to each of `targets` in turn from the pusher at `q_start`, `group` of them as
+    one step where the motion is slow (`_slow`); whether the pusher pushed in any of them, and
+    how many steps were taken. `trace` (n x TRACE_COLS, or 0 rows: none) gets each one's state."""
     touched = False
     qx, qy = q_start[0], q_start[1]
     ms[PITCH_MAX] = TIPPED_OVER_RAD if ms[OVER] != 0.0 else ms[PITCH]
-    for i in range(targets.shape[0]):
-        _step(geo, fs, normal, dxw, dyw, pg, ms, qx, qy, targets[i, 0], targets[i, 1], dt, mu_p)
-        qx, qy = targets[i, 0], targets[i, 1]
+    n, i, taken = targets.shape[0], 0, 0
+    while i < n:
+        k = 1
+        if group > 1 and i + group <= n and _slow(pg, ms, qx, qy, targets, i, group, dt, v_slow):
+            k = group
+        j = i + k - 1
+        _step(geo, fs, normal, dxw, dyw, pg, ms, qx, qy, targets[j, 0], targets[j, 1], k * dt, mu_p)
+        qx, qy = targets[j, 0], targets[j, 1]
         touched = touched or ms[IMPULSE] > 0.0
         if trace.shape[0] > 0:
-            for j in range(6):
-                trace[i, j] = ms[j]
-            trace[i, 6] = TIPPED_OVER_RAD if ms[OVER] != 0.0 else ms[PITCH]
+            for c in range(6):
+                trace[taken, c] = ms[c]
+            trace[taken, 6] = TIPPED_OVER_RAD if ms[OVER] != 0.0 else ms[PITCH]
             wx, wy = _pitch_rate_world(pg, ms)
-            trace[i, 7], trace[i, 8] = wx, wy
-    return touched
+            trace[taken, 7], trace[taken, 8] = wx, wy
+        ms[PITCH_MAX] = max(ms[PITCH_MAX], TIPPED_OVER_RAD if ms[OVER] != 0.0 else ms[PITCH])
+        i += k
+        taken += 1
+    return touched, taken
 
 
 @njit(cache=True)
@@ -349,6 +376,19 @@ def _pitch_rate_world(pg, ms):
     nx = c * pg.edge_n[e, 0] - s * pg.edge_n[e, 1]
     ny = s * pg.edge_n[e, 0] + c * pg.edge_n[e, 1]
     return -ny * ms[PITCH_W], nx * ms[PITCH_W]
+
+
+@dataclass(frozen=True)
+class SlowSteps:
+    """Where the motion is slow and smooth the model takes one step for several of the
+    protocol's: while the pusher moves no faster than `speed_m_s` and the object (flat on the
+    floor) no faster either, up to `steps` protocol steps are one step of their summed length
+    (the protocol's chunk of checks, `PlanarSimulator.check_every_steps`, is two). Quasi-static
+    pushing is such motion; an impact or a fast slide is not. `steps=1` turns it off. Its
+    cost in accuracy is in docs/physics.md's convergence table."""
+
+    speed_m_s: float = 0.05
+    steps: int = 5
 
 
 class PlanarModel:
@@ -435,14 +475,21 @@ class PlanarModel:
         return self.g - self.rot() @ self.com
 
     def run(
-        self, q0: np.ndarray, targets: np.ndarray, dt: float, mu_p: float, trace: np.ndarray
-    ) -> bool:
-        """Steps from the pusher at q0 to each target in turn (`_run`)."""
-        fr = self.fr
+        self,
+        q0: np.ndarray,
+        targets: np.ndarray,
+        dt: float,
+        mu_p: float,
+        trace: np.ndarray,
+        slow: SlowSteps | None = None,
+    ) -> tuple[bool, int]:
+        """Steps from the pusher at q0 to each target in turn (`_run`): whether it pushed, and
+        how many steps the model took (fewer than targets where `slow` grouped them)."""
+        fr, slow = self.fr, slow or SlowSteps(steps=1)
         return _run(
             fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw, self.geo, self.ms,
             np.asarray(q0, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
-            float(dt), float(mu_p), trace,
+            float(dt), float(mu_p), trace, int(slow.steps), float(slow.speed_m_s),
         )  # fmt: skip
 
     def step(self, q0: np.ndarray, q1: np.ndarray, dt: float, mu_p: float) -> None:
@@ -499,12 +546,17 @@ class PlanarSimulator(Simulator):
     """`backend=planar`: the reference model behind the shared simulator interface."""
 
     name = "planar"
+    check_every_steps = 10  # the protocol's chunk (as MuJoCo's): two slow steps (`SlowSteps`)
 
     def __init__(
-        self, settings: SimSettings | None = None, planar: FrictionSettings | None = None
+        self,
+        settings: SimSettings | None = None,
+        planar: FrictionSettings | None = None,
+        slow_steps: SlowSteps | None = None,
     ) -> None:
         super().__init__(settings)
         self.planar = planar or FrictionSettings()
+        self.slow_steps = slow_steps or SlowSteps()
         self._model: PlanarModel | None = None
         self._scene: SceneSpec | None = None
         self._q = np.array(_PARK_XY_M, dtype=float)
@@ -570,15 +622,12 @@ class PlanarSimulator(Simulator):
         dt = self.settings.timestep_s
         mu_p = self._scene.obj.mu_pusher
         targets = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
-        if self.trace is None:
-            touched = m.run(self._q, targets, dt, mu_p, _NO_TRACE)
-        else:
-            rows = np.zeros((len(targets), TRACE_COLS))
-            touched = m.run(self._q, targets, dt, mu_p, rows)
-            for r in rows:
-                n = tuple(m.tilt_direction()) if r[6] != 0.0 else (1.0, 0.0)
-                tilt = (float(r[6]), n, (float(r[7]), float(r[8])))
-                self.trace.append(_object_state(m.com, r[0:2], float(r[2]), r[3:6], tilt))
+        rows = _NO_TRACE if self.trace is None else np.zeros((len(targets), TRACE_COLS))
+        touched, taken = m.run(self._q, targets, dt, mu_p, rows, self.slow_steps)
+        for r in rows[:taken]:
+            n = tuple(m.tilt_direction()) if r[6] != 0.0 else (1.0, 0.0)
+            tilt = (float(r[6]), n, (float(r[7]), float(r[8])))
+            self.trace.append(_object_state(m.com, r[0:2], float(r[2]), r[3:6], tilt))
         if len(targets):
             self._q = targets[-1].copy()
         return touched, math.degrees(m.ms[PITCH_MAX])
@@ -588,10 +637,10 @@ class PlanarSimulator(Simulator):
 
 
 # The model's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "planar-4"  # 2: compiled steps; 3: the solver's start and line search
+PHYSICS_VERSION = "planar-5"  # 2: compiled steps; 3: the solver's start and line search
 # (results moved within the solver's tolerance); 4: the pitch about a support edge (a push
-# reports tipped by the tilt rule, as on the engines, not at the pitch's onset)
+# reports tipped by the tilt rule, as on the engines, not at the pitch's onset); 5: slow steps
 ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
-PHYSICS_SETTINGS = FrictionSettings()
+PHYSICS_SETTINGS = (FrictionSettings(), SlowSteps())
 
-__all__ = ["PlanarModel", "PlanarSimulator"]
+__all__ = ["PlanarModel", "PlanarSimulator", "SlowSteps"]

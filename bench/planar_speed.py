@@ -17,9 +17,10 @@ rounding (its solver tolerances and stick/slip decisions), the floor under which
 versions that round differently cannot agree.
 
 `--resolutions` instead runs every push at the default resolution (400 footprint samples,
-1 ms steps) and at coarser ones (fewer samples, longer steps, both): per resolution the CPU
-time against the default's and the largest rotation change at 40 and at 4 cm/s, what the
-model's cheaper settings would buy and cost (docs/performance.md, "planar").
+1 ms steps, slow steps of 5) and at others (slow steps off, fewer samples, longer steps):
+per resolution the CPU time against the default's and the largest rotation change at 40 and
+at 4 cm/s: what the model's cheaper settings would buy and cost (docs/performance.md,
+"planar").
 
 `--pushes N` runs N of the 54 pushes, spread over the list (tests/test_bench.py's smoke run).
 """
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from comexp.backends.floor_friction import FrictionSettings
-from comexp.backends.planar_sim import PlanarSimulator
+from comexp.backends.planar_sim import PlanarSimulator, SlowSteps
 from comexp.experiment.objects import com_point, load_objects
 from comexp.experiment.simulator import contact_push
 from comexp.method.scene import FloorSpec, SceneSpec, SimSettings
@@ -101,18 +102,30 @@ def self_noise(sim_cls: type, all_cases) -> None:
     print(f"max |d rotation| under a 1e-15 m nudge: {worst:.2e} deg ({worst_label})")
 
 
-# (footprint samples, step in ms) against the default (400, 1)
-RESOLUTIONS = ((400, 1.0), (200, 1.0), (100, 1.0), (400, 2.0), (400, 4.0), (100, 4.0))
+# (footprint samples, step in ms, slow steps) against the default (400, 1, 5)
+RESOLUTIONS = (
+    (400, 1.0, 5),
+    (400, 1.0, 1),
+    (200, 1.0, 5),
+    (100, 1.0, 5),
+    (400, 2.0, 5),
+    (100, 2.0, 5),
+)
 
 
 def resolutions(all_cases) -> None:
     """CPU time and rotation change of each resolution against the default's."""
-    print("| samples | step (ms) | CPU vs default | max abs(d rot) 40 cm/s | 4 cm/s | median |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| samples | step (ms) | slow steps | CPU vs default | max abs(d rot) 40 cm/s | 4 cm/s "
+        "| median |"
+    )
+    print("|---|---|---|---|---|---|---|")
     base = None
-    for samples, step_ms in RESOLUTIONS:
+    for samples, step_ms, slow in RESOLUTIONS:
         sim = PlanarSimulator(
-            SimSettings(timestep_s=step_ms / 1e3), replace(FrictionSettings(), samples=samples)
+            SimSettings(timestep_s=step_ms / 1e3),
+            replace(FrictionSettings(), samples=samples),
+            SlowSteps(steps=slow),
         )
         rots, cpu = [], 0.0
         for _, scene, cmd in all_cases:
@@ -126,8 +139,8 @@ def resolutions(all_cases) -> None:
         fast = np.array(["v=40" in label for label, _, _ in all_cases])
         worst = [f"{d[m].max():.3f}" if m.any() else "-" for m in (fast, ~fast)]
         print(
-            f"| {samples} | {step_ms:g} | x{base[1] / cpu:.2f} | {worst[0]} | {worst[1]} | "
-            f"{np.median(d):.4f} |"
+            f"| {samples} | {step_ms:g} | {slow} | x{base[1] / cpu:.2f} | {worst[0]} | "
+            f"{worst[1]} | {np.median(d):.4f} |"
         )
 
 

@@ -171,7 +171,8 @@ class Simulator(ABC):
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
         """Run len(targets) steps; the pusher reaches targets[i] (world, m) at the end of
         step i, moving straight between them. Returns (pusher touched the object during these
-        steps, max tilt in deg over them). Appends every step's state to `trace` if set."""
+        steps, max tilt in deg over them). Appends every step's state to `trace` if set (planar:
+        every step of its model, which takes one for several where the motion is slow)."""
 
     def render_tracking_depth(self) -> DepthImage:
         """The depth image of a tracking frame taken during a push; an engine may override it
