@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_options
-from comexp.experiment.episode import EpisodeSpec
+from comexp.experiment.task import EpisodeSpec
 from comexp.method.estimator import EstimatorSettings
 
 
