@@ -45,13 +45,15 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from comexp.experiment import episode as episode_mod
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec, run_episode
-from comexp.experiment.simulator import Simulator, make_simulator
-from comexp.method.estimator import ComEstimator
-from comexp.method.perception import PoseTracker
+from comexp.experiment.task import EpisodeResult, EpisodeSpec
+
+if TYPE_CHECKING:
+    from comexp.experiment.simulator import Simulator
+
+# The episode loop (Numba, OpenCV, the engines) is imported by the functions that run
+# episodes, not here: bench/memory.py imports `job_specs` as `comexp`'s driver does, lightly.
 
 PHASES = ("physics (sim.push)", "scene build", "render", "perception", "estimator")
 
@@ -155,6 +157,10 @@ def instrumented(sim: Simulator, timer: PhaseTimer) -> Iterator[None]:
     The wrapped functions do not call one another (images are rendered before perception
     sees them), so the phases are disjoint and add up to at most the episode's wall time.
     """
+    from comexp.experiment import episode as episode_mod
+    from comexp.method.estimator import ComEstimator
+    from comexp.method.perception import PoseTracker
+
     patches: list[tuple[Any, str, Any]] = [
         (sim, "push", PHASES[0]),
         (sim, "build", PHASES[1]),
@@ -227,6 +233,8 @@ def source_digest(backend: str) -> str:
 def raw_steps_per_s(sim: Simulator, spec: EpisodeSpec, seconds: float = 1.0) -> float:
     """`sim.step` on the episode's built scene (object resting, pusher parked): the engine's
     speed with the backend's stepping loop but no push logic. Best of three."""
+    from comexp.experiment import episode as episode_mod
+
     sim.build(episode_mod.build_scene(spec))
     n = round(seconds / sim.settings.timestep_s)
     best = float("inf")
@@ -275,6 +283,9 @@ def profile(
     overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
     specs = strided(job_specs(backend, floor, speed, overrides), n)
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.simulator import make_simulator
+
     opts = job_backend_options(backend, floor, speed, overrides)
     sim = make_simulator(backend, **opts)
     out_digest = source_digest(backend)
@@ -381,6 +392,10 @@ def _load_module(name: str, path: str) -> Any:
 
 def compare_baseline(backend: str, n: int, speed: float, floor: str, baseline: str) -> list[str]:
     """Same episodes with the baseline modules and the current ones, interleaved (ABBA)."""
+    from comexp.experiment import episode as episode_mod
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.simulator import make_simulator
+
     names = ("perceive_first", "observe", "PoseTracker", "PerceptionError", "ComEstimator")
     current = {k: getattr(episode_mod, k) for k in names}
     base = dict(current)

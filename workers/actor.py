@@ -30,8 +30,8 @@ from typing import Any
 
 import ray
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec
 from comexp.experiment.platform import has_sigalrm
+from comexp.experiment.task import EpisodeResult, EpisodeSpec
 
 DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
 DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.registry:make_simulator"

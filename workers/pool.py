@@ -21,7 +21,7 @@ from typing import Any
 import ray
 import ray.exceptions as rex
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.experiment.task import EpisodeResult, EpisodeSpec
 
 from .actor import (
     DEFAULT_RUNNER,

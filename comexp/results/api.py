@@ -33,7 +33,7 @@ from comexp.results.store import ResultsDB
 if TYPE_CHECKING:
     import pandas as pd
 
-    from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+    from comexp.experiment.task import EpisodeResult, EpisodeSpec
 
 TABLES = {"episodes": EPISODES, "pushes": PUSHES, "sweeps": SWEEPS}
 DbLike = ResultsDB | str | os.PathLike[str]
@@ -271,7 +271,7 @@ def _from_json(tp: Any, value: Any) -> Any:
 
 def spec_from_json(text: str) -> EpisodeSpec:
     """The stored `spec` column back as the `EpisodeSpec` that ran (estimator included)."""
-    from comexp.experiment.episode import EpisodeSpec
+    from comexp.experiment.task import EpisodeSpec
 
     return _from_json(EpisodeSpec, json.loads(text))
 

@@ -12,7 +12,7 @@ import math
 import numbers
 from typing import Any
 
-from comexp.experiment.episode import EpisodeSpec
+from comexp.experiment.task import EpisodeSpec
 
 KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 

@@ -40,7 +40,7 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
 from sqlalchemy.pool import StaticPool
 
-from comexp.experiment.episode import EpisodeResult
+from comexp.experiment.task import EpisodeResult
 from comexp.results import migrations
 from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import episode_key
