@@ -159,7 +159,7 @@ class MotionSettings:
     floor_turn_sigma: float = 0.5  # ... plus this times the slide's own turn (rad)
     floor_slide_outlier: float = 0.1  # chance that a slide's direction says nothing
     floor_share: float = 0.5
-    floor_prune: float = 0.03  # hypotheses below this share of the best weight are dropped
+    floor_prune: float = 0.05  # hypotheses below this share of the best weight are dropped
     floor_sign_eps: float = 0.05  # sign_eps about the floor's lines of action
     floor_min_slide_m: float = 0.003
     # ... and only after pushes fast enough for such a slide on a floor this slippery
@@ -443,6 +443,7 @@ def floor_mixture_loglik(
     direction: np.ndarray,
     ms: MotionSettings,
     base: np.ndarray | None = None,
+    cache: dict | None = None,
 ) -> np.ndarray:
     """log-likelihood (n,) of the net turns (signs and sizes) and the impulses' directions, the
     floor unknown: a mixture over `floor_hypotheses` (weighed by the slides), each with the
@@ -467,7 +468,18 @@ def floor_mixture_loglik(
             mu_p = ms.mu_p_grid[m_i]
             lines = floor_lines(feats, angle, ratio, mu_p, ms.floor_share)
             lf = [replace(f, N=np.asarray(n)) for f, n in zip(feats, lines, strict=True)]
-            t = direction[:, m_i] + (sign_loglik(G, lf, sms) if ms.use_net else 0.0)
+            t = direction[:, m_i]
+            if ms.use_net:
+                # each push's sign term under this line, kept across pushes in `cache`
+                # (keyed by the push's index and its line: the same values)
+                for i, f in enumerate(lf):
+                    key = (i, float(f.N[0]), float(f.N[1]))
+                    term = None if cache is None else cache.get(key)
+                    if term is None:
+                        term = sign_loglik(G, [f], sms)
+                        if cache is not None:
+                            cache[key] = term
+                    t = t + term
             if ms.use_net_size:
                 if ratio != 1.0 and ms.floor_gain_power != 0.0 and feats:
                     gains = floor_gains(feats, angle, ratio, ms.floor_gain_power)
@@ -518,17 +530,19 @@ def motion_posterior(
     feats: list[PushFeatures],
     ms: MotionSettings,
     sums: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    cache: dict | None = None,
 ) -> np.ndarray:
     """Weights (n,) of candidate CoMs G: exp of the summed log-likelihoods, rho^2 and mu_p
     profiled (the best per G, each shared by the episode's pushes). `sums`: `push_logliks`
-    of all of `feats`, if already at hand."""
+    of all of `feats`, if already at hand; `cache`: a dict kept by the caller between calls
+    on the same G and growing `feats` (the floor mixture's per-push sign terms)."""
     foot = np.asarray(footprint, dtype=float)
     early, direction, sign = sums if sums is not None else push_logliks(G, foot, feats, ms)
     # the floor model needs a slide to go on (none at 4 cm/s: slides under floor_min_slide_m);
     # without one the anisotropic hypotheses only add freedom, and motion-1's terms are used
     if ms.use_floor and any(f.slide is not None for f in feats):
         e = early.max(axis=1)
-        ll = e + floor_mixture_loglik(G, foot, feats, direction, ms, base=e)
+        ll = e + floor_mixture_loglik(G, foot, feats, direction, ms, base=e, cache=cache)
         p = np.exp(ll - ll.max())
         return p / p.sum()
     ll = early.max(axis=1) + direction.max(axis=1) + sign
@@ -588,6 +602,7 @@ class MotionEstimator:
         self._path: PushPath | None = None
         self._sums: tuple[np.ndarray, ...] | None = None  # running `push_logliks`
         self._yaw_now: float | None = None  # the object frame's world yaw after the last push
+        self._cache: dict = {}  # `motion_posterior`'s per-push terms
 
     @property
     def estimate_m(self) -> np.ndarray:
@@ -665,7 +680,7 @@ class MotionEstimator:
             else tuple(a + b for a, b in zip(self._sums, new, strict=True))
         )
         self.weights = motion_posterior(
-            self.points, self.footprint, self.features, self.motion, self._sums
+            self.points, self.footprint, self.features, self.motion, self._sums, self._cache
         )
         th = self.settings.theta_T_deg
         turn = "ccw" if rotation_deg > th else "cw" if rotation_deg < -th else "band"
