@@ -119,3 +119,19 @@ def test_episode_protocol_reaches_every_spec() -> None:
     assert {(s.push_length_cm, s.recenter_beyond_cm) for s in changed} == {(2.0, 0.0)}
     # a different protocol is a different episode (never mixed up with stored ones)
     assert {episode_key(s) for s in changed}.isdisjoint({episode_key(s) for s in default})
+
+
+def test_motion_jobs_pin_the_motion_model_version() -> None:
+    """A motion job's episodes carry MOTION_VERSION (so a database of an older motion model is
+    not resumed as if it were this one); paper's do not, and their keys are as before the
+    field existed (it is left out of the key when unset)."""
+    from comexp.method.motion_estimator import MOTION_VERSION
+    from comexp.results.identity import canonical_json
+
+    motion = _specs(*SMALL, "estimator.method=motion", "grid.objects=[l_shape]")
+    assert {s.estimator.motion_version for s in motion} == {MOTION_VERSION}
+    paper = _specs(*SMALL, "grid.objects=[l_shape]")
+    assert {s.estimator.motion_version for s in paper} == {""}
+    assert all("motion_version" not in canonical_json(s) for s in paper)
+    pinned = _specs(*SMALL, "estimator.method=motion", "estimator.motion_version=motion-1")
+    assert {s.estimator.motion_version for s in pinned} == {"motion-1"}

@@ -157,6 +157,8 @@ class EstimatorConfig:
     mag_noise: float = _EST.mag_noise_deg  # deg
     mag_rel_noise: float = _EST.mag_rel_noise
     mag_floor_model: bool = _EST.mag_floor_model
+    # motion: the model's revision in the episode key; "" = the grid pins the current one
+    motion_version: str = _EST.motion_version
 
 
 # config knob (`estimator.<knob>`) -> EstimatorSettings field: the one place the two names meet
@@ -178,6 +180,7 @@ SETTINGS_FIELDS: dict[str, str] = {
     "mag_noise": "mag_noise_deg",
     "mag_rel_noise": "mag_rel_noise",
     "mag_floor_model": "mag_floor_model",
+    "motion_version": "motion_version",
 }
 _CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 

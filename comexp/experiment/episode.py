@@ -137,7 +137,9 @@ class _EpisodeLoop:
             return self.failed(out.status.value, f"push {k}: {out.status.value}")
         if not out.contact_made:
             self.details.append(f"push {k}: pusher missed the object")
+        n_notes = len(self.details)
         new_frame, true_now, rot, rot_true = self._measure(k, out, used)
+        recentred = len(self.details) > n_notes  # `_measure` notes a re-centring, only that
         line = None
         if settings.method == "magnitude" and settings.mag_floor_model:
             # the robot knows its floor and pusher; the yaw is the estimator's own (vision)
@@ -157,6 +159,8 @@ class _EpisodeLoop:
                     t_contact_s=(approach_m - self.scene.pusher.radius_m) / speed_m_s,
                     speed_m_s=speed_m_s,
                     rotation_deg=rot,
+                    t_end_s=cmd.travel_m / cmd.speed_m_s,
+                    extra={"recentred": True} if recentred else {},
                 )
             )
         decision = self.est.observe(P, N, rot, line)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from typing import Any, Protocol
 
 from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_options
@@ -57,6 +58,10 @@ def expand_grid(
     from comexp.experiment.registry import physics_identity
 
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
+    if est.method == "motion" and not est.motion_version:
+        from comexp.method.motion_estimator import MOTION_VERSION
+
+        est = replace(est, motion_version=MOTION_VERSION)
     physics = physics_identity(cfg.backend.name, options=simulator_options(cfg))
     names = list(cfg.grid.objects) if cfg.grid.objects is not None else sorted(objects)
     floors = floor_conditions(cfg.floor.name, cfg.floor.mu, cfg.floor.orientations)

@@ -43,7 +43,7 @@ from __future__ import annotations
 import importlib
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -100,6 +100,10 @@ class EstimatorSettings:
     # magnitude in episodes: the known floor and pusher friction turn each push's line of action
     # (`floor_force_direction`); False = along the push direction, as the paper
     mag_floor_model: bool = True
+    # motion: the model's revision (`comexp.method.motion_estimator.MOTION_VERSION`), pinned by
+    # the grid for motion jobs so that a database is never resumed across revisions; part of
+    # the episode key only when set ("" = not pinned: other methods, older databases)
+    motion_version: str = field(default="", metadata={"key_omit_default": True})
 
     def __post_init__(self) -> None:
         if self.rotation_source not in ROTATION_SOURCES:

@@ -20,8 +20,9 @@ paper: `estimator.method=motion`", has the model, its assumptions and failure mo
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -51,6 +52,36 @@ class PushPath:
     speed_m_s: float
     rotation_deg: float | None = None  # the unwrapped net turn, if the tracker gives it
     extra: dict = field(default_factory=dict)
+    t_end_s: float | None = None  # when the pusher stopped (the command); None: unknown
+
+    def slide(self, min_len_m: float = 0.003) -> tuple[float, float, float, float] | None:
+        """The free slide after the pusher stopped, world frame: (direction of the object's
+        velocity when the pusher stopped, direction of its displacement from then to rest, that
+        displacement's length, how much the object turned meanwhile (rad, unsigned)), or None.
+        The velocity is the origin's over the last two frames up to the stop; the end is the
+        pose at rest, or the last frame if the object was put back before it was imaged
+        (`extra["recentred"]`, the episode's re-centring). None without `t_end_s`, with fewer
+        than two frames by then, or a slide shorter than `min_len_m`."""
+        if self.t_end_s is None:
+            return None
+        pts = [
+            (t, p) for t, p in zip(self.t_s, self.poses, strict=True) if t <= self.t_end_s + 0.005
+        ]
+        if len(pts) < 2:
+            return None
+        (t1, p1), (t2, p2) = pts[-2], pts[-1]
+        v = np.array([p2.x_m - p1.x_m, p2.y_m - p1.y_m]) / max(t2 - t1, 1e-9)
+        end = self.pose_after
+        if self.extra.get("recentred"):  # put back before the image at rest: the last frame
+            if self.t_s[-1] <= t2:
+                return None  # no frame of the slide itself
+            end = self.poses[-1]
+        D = np.array([end.x_m - p2.x_m, end.y_m - p2.y_m])
+        length = float(np.hypot(*D))
+        if length < min_len_m or np.hypot(*v) < 1e-3:
+            return None
+        turn = abs((end.yaw_rad - p2.yaw_rad + math.pi) % (2 * math.pi) - math.pi)
+        return math.atan2(v[1], v[0]), math.atan2(D[1], D[0]), length, turn
 
     def relative(self) -> np.ndarray:
         """(k + 2, 4): t, x, y, yaw of the object frame relative to its pose before the push
@@ -76,6 +107,10 @@ class PushPath:
 
 
 G_ACC = 9.81  # m/s^2
+
+# The model's revision: bumped whenever the estimates change (pinned in motion episodes' keys,
+# `EstimatorSettings.motion_version`). motion-2: the floor fitted per episode from the slides.
+MOTION_VERSION = "motion-2"
 
 
 @dataclass(frozen=True)
@@ -111,6 +146,31 @@ class MotionSettings:
     use_net: bool = True
     # rho^2 = Izz / m about the CoM, profiled on this grid times the hull's own rho0^2
     rho2_scales: tuple[float, ...] = (0.3, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0, 4.5, 7.0, 10.0, 15.0)
+    # the floor, fitted per episode (`floor_hypotheses`): isotropic, or anisotropic with the
+    # low-friction axis at one of floor_angles directions in [0, pi) and mu_high / mu_low one of
+    # floor_ratios; weighed by the slides' directions (floor_sigma_deg of model error), each
+    # turns the net turns' lines of action (`comexp.method.estimator.floor_force_direction`,
+    # floor_share of the friction's turn, within the pusher's cone)
+    use_floor: bool = True
+    floor_angles: int = 12
+    floor_ratios: tuple[float, ...] = (3.0, 10.0)
+    floor_iso_prior: float = 0.5
+    floor_sigma_deg: float = 8.0
+    floor_turn_sigma: float = 0.5  # ... plus this times the slide's own turn (rad)
+    floor_slide_outlier: float = 0.1  # chance that a slide's direction says nothing
+    floor_share: float = 0.5
+    floor_prune: float = 0.05  # hypotheses below this share of the best weight are dropped
+    floor_sign_eps: float = 0.05  # sign_eps about the floor's lines of action
+    floor_min_slide_m: float = 0.003
+    # ... and only after pushes fast enough for such a slide on a floor this slippery
+    # (v^2 / (2 g mu) >= floor_min_slide_m: 7.7 cm/s; at 4 cm/s no slide is used)
+    floor_mu_min: float = 0.1
+    # under an anisotropic floor hypothesis a net turn's gain scales with the floor's friction
+    # along the push, |A N| ** floor_gain_power (relative to the episode's geometric mean)
+    floor_gain_power: float = 1.0
+    # Algorithm 1 scores each candidate push by its expected line of action under the best
+    # floor hypothesis and pusher friction so far (`MotionEstimator.next_push`), not by N
+    floor_choice: bool = True
 
 
 @dataclass(frozen=True)
@@ -122,6 +182,8 @@ class PushFeatures:
     turn_net_rad: float
     # (time since the impact, yaw, origin displacement (2,)) of the frames used, earliest first
     early: tuple[tuple[float, float, np.ndarray], ...]
+    yaw_rad: float = 0.0  # the object frame's world yaw at the push's start
+    slide: tuple[float, float, float, float] | None = None  # `PushPath.slide`, world frame
 
 
 def push_features(path: PushPath | None, P, N, rotation_deg: float, ms: MotionSettings):
@@ -141,7 +203,12 @@ def push_features(path: PushPath | None, P, N, rotation_deg: float, ms: MotionSe
             if math.isfinite(v0) and ms.impulse_mu_max * G_ACC * dt > ms.impulse_share * v0:
                 break
             early.append((float(dt), float(yaw), np.array([x, y])))
-    return PushFeatures(P, N, math.radians(rotation_deg), tuple(early))
+    yaw0 = 0.0 if path is None else path.pose_before.yaw_rad
+    slide = None if path is None else path.slide(ms.floor_min_slide_m)
+    v0 = float("nan") if path is None else path.speed_m_s
+    if math.isfinite(v0) and v0 * v0 / (2 * G_ACC * ms.floor_mu_min) < ms.floor_min_slide_m:
+        slide = None  # too slow for a free slide of that length even on the slipperiest floor
+    return PushFeatures(P, N, math.radians(rotation_deg), tuple(early), yaw0, slide)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -224,33 +291,210 @@ def sign_loglik(G: np.ndarray, feats: list[PushFeatures], ms: MotionSettings) ->
     return out
 
 
-def net_loglik(G: np.ndarray, footprint: np.ndarray, feats: list[PushFeatures], ms: MotionSettings):
+def net_loglik(
+    G: np.ndarray,
+    footprint: np.ndarray,
+    feats: list[PushFeatures],
+    ms: MotionSettings,
+    rho2: np.ndarray | None = None,
+):
     """log-likelihood (n,) of the net turns' sizes: `magnitude`'s model rot_j = k f(l_j) (one
     gain per episode, saturation profiled), with a chance `net_outlier` that a turn is
     unrelated to its lever (the floor turned it), so that no push can rule a CoM out."""
-    from comexp.method.estimator import SATURATION_BETAS, lever_arms
+    from comexp.method.estimator import SATURATION_BETAS
 
     rot = np.array([math.degrees(f.turn_net_rad) for f in feats])
     if len(rot) < 2:
         return np.zeros(len(G))
     P = np.array([f.P for f in feats])
     N = np.array([f.N for f in feats])
-    foot = np.asarray(footprint, dtype=float)
-    c = foot.mean(axis=0)
-    rho2 = ((foot - c) ** 2).sum(axis=1).mean() + ((G - c) ** 2).sum(axis=1)
-    lev = lever_arms(G, P, N)
+    if rho2 is None:
+        rho2 = _rho2_of(np.asarray(footprint, dtype=float), G)
+    # (pushes, candidates): the pushes' few rows summed by rows, the candidates' many by BLAS
+    lev = (P[:, None, 0] - G[None, :, 0]) * N[:, None, 1] - (P[:, None, 1] - G[None, :, 1]) * N[
+        :, None, 0
+    ]
     var = ms.net_noise_deg**2 + (ms.net_rel_noise * rot) ** 2
     w = 1.0 / var
+    amp = ((1 - ms.net_outlier) / np.sqrt(2 * np.pi * var))[:, None]
+    floor_p = ms.net_outlier / ms.net_outlier_width_deg
     best = np.full(len(G), -np.inf)
     for beta in SATURATION_BETAS:
-        f = lev if math.isinf(beta) else lev / (1.0 + lev * lev / (beta * rho2[:, None]))
-        k = (w * rot * f).sum(axis=1) / np.maximum((w * f * f).sum(axis=1), 1e-300)
+        f = lev if math.isinf(beta) else lev / (1.0 + lev * lev / (beta * rho2[None, :]))
+        k = ((w * rot) @ f) / np.maximum(w @ (f * f), 1e-300)
         k = np.maximum(k, 0.0)
-        r2 = (rot - k[:, None] * f) ** 2 / var
-        inlier = (1 - ms.net_outlier) * np.exp(-0.5 * r2) / np.sqrt(2 * np.pi * var)
-        ll = np.log(inlier + ms.net_outlier / ms.net_outlier_width_deg).sum(axis=1)
-        best = np.maximum(best, ll)
+        r = rot[:, None] - k[None, :] * f
+        inlier = amp * np.exp(-0.5 * r * r * w[:, None])
+        best = np.maximum(best, np.log(inlier + floor_p).sum(axis=0))
     return best
+
+
+def _rho2_of(foot: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """rho^2 about each candidate G of a uniform plate with the footprint's points."""
+    c = foot.mean(axis=0)
+    return ((foot - c) ** 2).sum(axis=1).mean() + ((G - c) ** 2).sum(axis=1)
+
+
+@functools.lru_cache(maxsize=8)
+def slide_turn_table(ratios: tuple[float, ...], n_alpha: int = 360) -> np.ndarray:
+    """(len(ratios), n_alpha): the angle from a translating body's initial velocity to its
+    displacement when it has stopped, on a floor with friction A = diag(1, ratio) along its
+    axes (elliptic maximum dissipation: deceleration along -A^2 u / |A u|), the velocity at
+    angle 2 pi i / n_alpha from the low-friction axis. Independent of the friction's scale
+    and the speed (they scale the path, not its shape)."""
+    al = np.arange(n_alpha) * 2 * math.pi / n_alpha
+    out = np.zeros((len(ratios), n_alpha))
+    for i, r in enumerate(ratios):
+        v = np.stack([np.cos(al), np.sin(al)], 1)
+        x = np.zeros_like(v)
+        a1, a2 = np.array([1.0, r]), np.array([1.0, r * r])
+        dt = 0.004 / max(r, 1.0)
+        for _ in range(20000):
+            sp = np.linalg.norm(v, axis=1)
+            if sp.max() < 1e-9:
+                break
+            u = v / np.maximum(sp, 1e-12)[:, None]
+            acc = -(a2 * u) / np.maximum(np.linalg.norm(a1 * u, axis=1), 1e-12)[:, None]
+            nv = v + acc * dt
+            nv[(nv * v).sum(axis=1) <= 0] = 0.0  # a slide stops, it does not reverse
+            x += 0.5 * (v + nv) * dt
+            v = nv
+        out[i] = (np.arctan2(x[:, 1], x[:, 0]) - al + math.pi) % (2 * math.pi) - math.pi
+    return out
+
+
+def floor_loglik(feats: list[PushFeatures], ms: MotionSettings) -> np.ndarray:
+    """log-likelihood (floor_angles, len(floor_ratios)) of the anisotropic floor hypotheses
+    (low-friction axis at angle pi i / floor_angles, world frame) from the slides' directions,
+    relative to the isotropic floor (0): each slide's turn from its initial velocity to its
+    displacement against `slide_turn_table`'s, Gaussian with floor_sigma_deg plus the vision
+    noise over the slide's length. A body that turns while it slides breaks the table's
+    assumption (translation): the sigma is that model error."""
+    ratios = tuple(ms.floor_ratios)
+    tab = slide_turn_table((1.0, *ratios))
+    n_al = tab.shape[1]
+    phis = np.arange(ms.floor_angles) * math.pi / ms.floor_angles
+    ll = np.zeros((len(phis), len(ratios)))
+    for f in feats:
+        if f.slide is None:
+            continue
+        av, a_d, length, turn = f.slide
+        # a body that turns as it slides curves its path: its turn adds to the model error
+        sig = (
+            math.radians(ms.floor_sigma_deg) + ms.sigma_move_m / length + ms.floor_turn_sigma * turn
+        )
+        dm = (a_d - av + math.pi) % (2 * math.pi) - math.pi
+        k = np.round(((av - phis) % (2 * math.pi)) / (2 * math.pi) * n_al).astype(int) % n_al
+        d = (dm - tab[:, k].T + math.pi) % (2 * math.pi) - math.pi  # (phis, 1 + ratios)
+        # with a chance floor_slide_outlier that a slide says nothing (uniform direction)
+        e = np.log(
+            (1 - ms.floor_slide_outlier)
+            * np.exp(-0.5 * (d / sig) ** 2)
+            / (math.sqrt(2 * math.pi) * sig)
+            + ms.floor_slide_outlier / (2 * math.pi)
+        )
+        ll += e[:, 1:] - e[:, :1]
+    return ll
+
+
+def floor_hypotheses(feats: list[PushFeatures], ms: MotionSettings):
+    """[(angle, ratio, log weight)]: the isotropic floor (ratio 1) and the anisotropic ones
+    whose weight is at least floor_prune of the best, weights normalised over those kept."""
+    from scipy.special import logsumexp
+
+    ll = floor_loglik(feats, ms)
+    n_aniso = ll.size
+    lp = math.log((1 - ms.floor_iso_prior) / n_aniso) if n_aniso else -math.inf
+    hyps = [(0.0, 1.0, math.log(ms.floor_iso_prior))]
+    for i in range(ll.shape[0]):
+        for j, r in enumerate(ms.floor_ratios):
+            hyps.append((math.pi * i / ms.floor_angles, float(r), lp + float(ll[i, j])))
+    w = np.array([h[2] for h in hyps])
+    keep = w >= w.max() + math.log(ms.floor_prune)
+    kept = [h for h, k in zip(hyps, keep, strict=True) if k]
+    norm = logsumexp([h[2] for h in kept])
+    return [(a, r, lw - norm) for a, r, lw in kept]
+
+
+def floor_lines(feats: list[PushFeatures], angle: float, ratio: float, mu_p: float, share: float):
+    """Each push's line of action (object frame, unit) on a floor with its low-friction axis at
+    world angle `angle` and mu_high / mu_low = `ratio`, pusher friction `mu_p`."""
+    from comexp.method.estimator import floor_force_direction
+
+    if ratio == 1.0:
+        return [f.N for f in feats]
+    return [floor_force_direction(f.N, f.yaw_rad - angle, 1.0, ratio, mu_p, share) for f in feats]
+
+
+def floor_gains(feats: list[PushFeatures], angle: float, ratio: float, power: float) -> np.ndarray:
+    """Each push's relative gain under a floor hypothesis: the floor's friction along the push,
+    |A N| with A = diag(1, ratio) along the floor's axes (low-friction axis at world `angle`),
+    to the power `power`, over the pushes' geometric mean: a push along the slippery axis turns
+    the object less (the friction's torque drives the turn)."""
+    a = np.array([f.yaw_rad - angle + math.atan2(f.N[1], f.N[0]) for f in feats])
+    g = np.hypot(np.cos(a), ratio * np.sin(a)) ** power
+    return g / np.exp(np.log(g).mean())
+
+
+def floor_mixture_loglik(
+    G: np.ndarray,
+    footprint: np.ndarray,
+    feats: list[PushFeatures],
+    direction: np.ndarray,
+    ms: MotionSettings,
+    base: np.ndarray | None = None,
+    cache: dict | None = None,
+) -> np.ndarray:
+    """log-likelihood (n,) of the net turns (signs and sizes) and the impulses' directions, the
+    floor unknown: a mixture over `floor_hypotheses` (weighed by the slides), each with the
+    pusher's friction mu_p profiled (the best per G, shared with the direction term, which
+    `direction` holds per mu_p); under a floor the net turns' signs follow the lever arm about
+    its lines of action (chance floor_sign_eps of the wrong one) and their sizes `magnitude`'s
+    one gain about those lines, weighed against "they say nothing" as without a floor model.
+    Only the values of mu_p whose evidence (the direction term over the candidates, with
+    `base`, the other terms, per G) is at least floor_prune of the best's are tried."""
+    from scipy.special import logsumexp
+
+    b = np.zeros(len(G)) if base is None else base
+    rho2 = _rho2_of(np.asarray(footprint, dtype=float), G)
+    ev = logsumexp(b[:, None] + direction, axis=0)
+    mu_keep = [i for i in range(len(ms.mu_p_grid)) if ev[i] >= ev.max() + math.log(ms.floor_prune)]
+    terms = []
+    h0 = len(feats) * math.log(1.0 / ms.net_outlier_width_deg) if len(feats) >= 2 else 0.0
+    sms = replace(ms, sign_eps=ms.floor_sign_eps)
+    for angle, ratio, lw in floor_hypotheses(feats, ms):
+        per_mu = []
+        for m_i in mu_keep:
+            mu_p = ms.mu_p_grid[m_i]
+            lines = floor_lines(feats, angle, ratio, mu_p, ms.floor_share)
+            lf = [replace(f, N=np.asarray(n)) for f, n in zip(feats, lines, strict=True)]
+            t = direction[:, m_i]
+            if ms.use_net:
+                # each push's sign term under this line, kept across pushes in `cache`
+                # (keyed by the push's index and its line: the same values)
+                for i, f in enumerate(lf):
+                    key = (i, float(f.N[0]), float(f.N[1]))
+                    term = None if cache is None else cache.get(key)
+                    if term is None:
+                        term = sign_loglik(G, [f], sms)
+                        if cache is not None:
+                            cache[key] = term
+                    t = t + term
+            if ms.use_net_size:
+                if ratio != 1.0 and ms.floor_gain_power != 0.0 and feats:
+                    gains = floor_gains(feats, angle, ratio, ms.floor_gain_power)
+                    lf = [
+                        replace(f, turn_net_rad=f.turn_net_rad / g)
+                        for f, g in zip(lf, gains, strict=True)
+                    ]
+                h1 = net_loglik(G, footprint, lf, ms, rho2)
+                t = t + np.logaddexp(math.log(ms.net_prior) + h1, math.log(1 - ms.net_prior) + h0)
+            if ratio == 1.0:  # the lines do not depend on mu_p: one evaluation serves all
+                per_mu = [t - direction[:, m_i] + direction[:, mu_keep].max(axis=1)]
+                break
+            per_mu.append(t)
+        terms.append(lw + np.max(per_mu, axis=0))
+    return logsumexp(np.array(terms), axis=0)
 
 
 def _rho2_grid(foot: np.ndarray, ms: MotionSettings) -> np.ndarray:
@@ -286,12 +530,21 @@ def motion_posterior(
     feats: list[PushFeatures],
     ms: MotionSettings,
     sums: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    cache: dict | None = None,
 ) -> np.ndarray:
     """Weights (n,) of candidate CoMs G: exp of the summed log-likelihoods, rho^2 and mu_p
     profiled (the best per G, each shared by the episode's pushes). `sums`: `push_logliks`
-    of all of `feats`, if already at hand."""
+    of all of `feats`, if already at hand; `cache`: a dict kept by the caller between calls
+    on the same G and growing `feats` (the floor mixture's per-push sign terms)."""
     foot = np.asarray(footprint, dtype=float)
     early, direction, sign = sums if sums is not None else push_logliks(G, foot, feats, ms)
+    # the floor model needs a slide to go on (none at 4 cm/s: slides under floor_min_slide_m);
+    # without one the anisotropic hypotheses only add freedom, and motion-1's terms are used
+    if ms.use_floor and any(f.slide is not None for f in feats):
+        e = early.max(axis=1)
+        ll = e + floor_mixture_loglik(G, foot, feats, direction, ms, base=e, cache=cache)
+        p = np.exp(ll - ll.max())
+        return p / p.sum()
     ll = early.max(axis=1) + direction.max(axis=1) + sign
     if ms.use_net_size:
         # two hypotheses about the net turns' sizes, weighed by their evidence: they follow
@@ -348,6 +601,8 @@ class MotionEstimator:
         self.features: list[PushFeatures] = []
         self._path: PushPath | None = None
         self._sums: tuple[np.ndarray, ...] | None = None  # running `push_logliks`
+        self._yaw_now: float | None = None  # the object frame's world yaw after the last push
+        self._cache: dict = {}  # `motion_posterior`'s per-push terms
 
     @property
     def estimate_m(self) -> np.ndarray:
@@ -364,12 +619,35 @@ class MotionEstimator:
         step = max(1, math.ceil(len(idx) / MAX_REGION_POINTS))
         return self.points[idx[::step]]
 
+    def expected_lines(self) -> np.ndarray:
+        """The candidate pushes' expected lines of action (unit, object frame): their normals
+        turned by the best floor hypothesis so far (the slides' weights) and the best pusher
+        friction (the impulses' directions), as `floor_mixture_loglik` turns the net turns'
+        lines; the normals themselves before any slide, or without the floor model."""
+        ms = self.motion
+        if not (ms.use_floor and ms.floor_choice) or self._yaw_now is None or not self.features:
+            return self.normals
+        angle, ratio, _ = max(floor_hypotheses(self.features, ms), key=lambda h: h[2])
+        if ratio == 1.0:
+            return self.normals
+        from scipy.special import logsumexp
+
+        early, direction, _ = self._sums
+        ev = logsumexp(early.max(axis=1)[:, None] + direction, axis=0)
+        mu_p = ms.mu_p_grid[int(np.argmax(ev))]
+        from comexp.method.estimator import floor_force_direction
+
+        yaw = self._yaw_now - angle
+        return np.array(
+            [floor_force_direction(n, yaw, 1.0, ratio, mu_p, ms.floor_share) for n in self.normals]
+        ).reshape(self.normals.shape)
+
     def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
         c, V, _ = weighted_pca(self.points, self.weights, self.pixel_m / SUBPIXEL)
         j = choose_contact(
             self.region(),
             self.contacts,
-            self.normals,
+            self.expected_lines(),
             self.settings,
             self.pixel_m,
             self.allowed,
@@ -382,6 +660,7 @@ class MotionEstimator:
     def observe_path(self, path: PushPath) -> None:
         """What the camera saw of the coming `observe`'s push (world frame)."""
         self._path = path
+        self._yaw_now = path.pose_after.yaw_rad
 
     def observe(
         self,
@@ -401,7 +680,7 @@ class MotionEstimator:
             else tuple(a + b for a, b in zip(self._sums, new, strict=True))
         )
         self.weights = motion_posterior(
-            self.points, self.footprint, self.features, self.motion, self._sums
+            self.points, self.footprint, self.features, self.motion, self._sums, self._cache
         )
         th = self.settings.theta_T_deg
         turn = "ccw" if rotation_deg > th else "cw" if rotation_deg < -th else "band"
@@ -421,7 +700,9 @@ class MotionPush:
     what the model uses), its pose at rest after, when the pusher reached the contact
     (`t_contact_s`) and the net turn if a tracker measured it unwrapped (`rotation_deg`, else
     the yaw change along the path), and the pusher's speed (`speed_m_s`: frames too late for
-    the impact to dominate at that speed are not used; None: no such check). Poses may be
+    the impact to dominate at that speed are not used; None: no such check), and when the
+    pusher stopped (`t_end_s`: the slide from then to rest weighs the floor hypotheses; None:
+    the floor stays at its prior). Poses may be
     `Pose2D` or (x_m, y_m, yaw_rad) tuples."""
 
     contact_m: tuple[float, float]
@@ -433,6 +714,7 @@ class MotionPush:
     t_contact_s: float
     rotation_deg: float | None = None
     speed_m_s: float | None = None  # the pusher's; None: every early frame counts as impulsive
+    t_end_s: float | None = None  # when the pusher stopped; None: the slide is not used
 
     def __post_init__(self) -> None:
         from comexp.method.estimator import _as_pose, _xy
@@ -461,6 +743,7 @@ class MotionPush:
             t_contact_s=float(self.t_contact_s),
             speed_m_s=float("nan") if self.speed_m_s is None else float(self.speed_m_s),
             rotation_deg=self.rotation_deg,
+            t_end_s=None if self.t_end_s is None else float(self.t_end_s),
         )
 
     def turn_deg(self) -> float:

@@ -37,7 +37,13 @@ def _canonical(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_canonical(v) for v in value]
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return _canonical(dataclasses.asdict(value))
+        # a field marked key_omit_default counts only when set: adding one leaves the keys of
+        # the episodes that do not set it as they were
+        return {
+            f.name: _canonical(getattr(value, f.name))
+            for f in dataclasses.fields(value)
+            if not (f.metadata.get("key_omit_default") and getattr(value, f.name) == f.default)
+        }
     if hasattr(value, "tolist"):  # numpy scalars and arrays
         return _canonical(value.tolist())
     raise TypeError(f"cannot build an episode key from a {type(value).__name__}: {value!r}")
