@@ -3,8 +3,9 @@
 Closed forms where they exist (mu g deceleration along each floor axis, the elliptic law on
 diagonal slides, spin-down under linear pressure centred under the CoM, no turn for a normal
 push through the CoM), the planar backend as the truth where they don't (turn magnitudes, the
-coupled slide-and-spin of a disc). Every backend passes all of it, with no xfail; a case an
-engine cannot pass is marked xfail with its measured value and listed in docs/physics.md.
+coupled slide-and-spin of a disc). Every backend passes all of it; a case an engine cannot
+pass is marked xfail with its measured value and listed in docs/physics.md (one today:
+MuJoCo's quasi-static tipping case).
 """
 
 from __future__ import annotations
