@@ -427,9 +427,10 @@ class FrictionGeometry(NamedTuple):
 
 
 # Friction state vector `fs` (float64): the pressure centre (object frame, from the CoM), the
-# tipped flag, the holding force and torque at the current pressure, the yaw the world-axis
-# sample offsets were last computed for (NaN: never), the last tensionless pressure's three
-# coefficients (`pressure_kernel`'s warm start; NaN: none).
+# flag set once a required centre left the hull (`TIPPED`; planar's pitch, not this flag, says
+# whether the object tips), the holding force and torque at the current pressure, the yaw the
+# world-axis sample offsets were last computed for (NaN: never), the last tensionless
+# pressure's three coefficients (`pressure_kernel`'s warm start; NaN: none).
 COP_X, COP_Y, TIPPED, F_HOLD, TAU_HOLD, YAW_CACHED, WARM_A, WARM_BX, WARM_BY = range(9)
 FS_SIZE = 9
 
@@ -462,8 +463,10 @@ def _update_holding(geo, fs, normal):
 @njit(cache=True)
 def set_cop_kernel(geo, fs, normal, cx, cy):
     """Pressure (into `normal`) for a centre of pressure c (object frame, from the CoM);
-    TIPPED when c leaves the convex hull of the footprint. (Between the samples' hull and the
-    footprint's the pressure is as close to the edge as the samples reach.)"""
+    fs[TIPPED] once c leaves the convex hull of the footprint (then the pressure is recomputed
+    at every nonzero c; whether the object tips is planar's pitch, backends/planar_sim.py).
+    (Between the samples' hull and the footprint's the pressure is as close to the edge as the
+    samples reach.)"""
     for i in range(geo.hull_o.shape[0]):
         if geo.hull_n[i, 0] * cx + geo.hull_n[i, 1] * cy - geo.hull_o[i] > 0.0:
             fs[TIPPED] = 1.0
@@ -596,10 +599,6 @@ class FootprintFriction:
     def cop(self) -> np.ndarray:
         """Centre of pressure, object frame, from the CoM (a view of the state)."""
         return self.fs[COP_X : COP_Y + 1]
-
-    @property
-    def tipped(self) -> bool:
-        return bool(self.fs[TIPPED])
 
     def impulse(self, xi_hat: np.ndarray, yaw: float, dt: float, pushed: bool) -> np.ndarray:
         """The floor's friction impulse (N s, and N m s about z) over one step of an engine,
