@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import shapely
 from numba import njit
 
+from comexp.backends.physics_settings import FrictionSettings  # with every backend's settings
 from comexp.experiment.contact import pusher_contact_height_m
 from comexp.method.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
 
@@ -223,17 +223,6 @@ def minimise_kernel(
         _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
         lam = (g[0] * a[0] + g[1] * a[1] + g[2] * a[2]) / (a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
     return xi, lam
-
-
-@dataclass(frozen=True)
-class FrictionSettings:
-    """Numerical settings of the footprint friction (their convergence is tested)."""
-
-    samples: int = 400  # target number of footprint area samples (grid cells)
-    smoothing_m_s: float = 1e-7  # |u| is smoothed below this slip inside the Newton solve only
-    newton_tol: float = 1e-13  # Newton decrement (J) at which a step's solve has converged
-    max_newton: int = 60
-    rest_snap_m_s: float = 1e-6  # a solved velocity this small, and no better than 0, is 0
 
 
 def footprint_samples(outline_m: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:

@@ -48,13 +48,18 @@ os.environ.setdefault("LP_NUM_THREADS", "0")
 
 import mujoco  # noqa: E402
 
-from comexp.backends.floor_friction import FootprintFriction, FrictionSettings  # noqa: E402
+from comexp.backends.floor_friction import FootprintFriction  # noqa: E402
 from comexp.backends.mujoco_steps import (  # noqa: E402
     PUSHER_SENSOR,
     PUSHER_SENSOR_MJCF,
     cos_tilt,
     push_steps,
     pusher_touching,
+)
+from comexp.backends.physics_settings import (  # noqa: E402
+    DEFAULT_CONTACT,
+    MUJOCO,
+    MujocoContactSettings,
 )
 from comexp.experiment.interface import PushStatus, Simulator  # noqa: E402
 from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES  # noqa: E402
@@ -80,53 +85,6 @@ _UNSTABLE_WARNINGS = (
 )
 
 
-@dataclass(frozen=True)
-class MujocoContactSettings:
-    """Solver and contact parameters; the defaults are the validated ones.
-
-    `solref`/`solimp` apply to every contact pair (the pusher pair takes `pusher_solref`).
-    `multiccd` asks the convex collider for several contact points per mesh pair (MuJoCo >= 3.3
-    understands the flag; MuJoCo 4 has it on by default). `pusher_mass_kg` must dwarf the
-    object's 0.2 kg: the pusher coasts through a chunk of steps at its commanded velocity, and
-    the object's reaction must not slow it (1e6 kg: < 1e-7 m/s per chunk).
-    """
-
-    solref: tuple[float, float] = (0.004, 1.0)
-    solimp: tuple[float, float, float, float, float] = (0.95, 0.99, 0.0005, 0.5, 2.0)
-    solreffriction: tuple[float, float] = (0.01, 1.0)  # (0, 0): friction rows use solref
-    impratio: float = 1.0
-    noslip_iterations: int = 0
-    integrator: str = "implicitfast"
-    iterations: int = 50
-    tolerance: float = 1e-10
-    multiccd: bool = True
-    use_box_geoms: bool = True  # rectangles as primitive boxes (exact box-box collider)
-    support_spacing_m: float = 0.01  # > 0: floor contact through small spheres (see header)
-    support_min_points: int = 8  # the grid spacing is halved until the core has this many
-    support_layout: str = "symmetric"  # "grid": uniform grid over the footprint (comparison)
-    support_radius_m: float = 0.001
-    rim_lift_m: float = 0.0005  # rim supports sit this high: they touch only when tilted
-    rim_frictionless: bool = False  # True: normal support only (see docs, open problems)
-    rim_grid: bool = False  # True: rim also on a grid over the rest of the footprint
-    build_settle_s: float = 0.1
-    substeps: int = 1  # physics steps per SimSettings.timestep_s (pusher command rate)
-    pusher_mass_kg: float = 1.0e6
-    pusher_geom: str = "capsule"  # "cylinder": MuJoCo's general convex collider (see header)
-    # the pusher pair over-damped (damping ratio 2): a plastic impact, as in the model; at
-    # critical damping the object left the pusher at impact and the push turned 49.2 or
-    # 53.2 deg by float rounding (planar 51.2; the same push at 8 yaws, mu 0.1, 40 cm/s)
-    pusher_solref: tuple[float, float] | None = (0.005, 2.0)  # None: `solref`
-    cone: str = "elliptic"
-    # experimental, off by default (measured in docs/physics_mujoco.md, "Root cause 3"):
-    floor_margin_m: float = 0.0  # > 0: core contacts active up to this gap (smooth hover)
-    ring_min_points: int = 16  # support_layout "rings": points on the smallest ring
-    pusher_sleeve_kg: float = 0.0  # > 0: pusher geom on a free vertical slide of this mass
-    # depth renderers kept (one per object geometry, ~80 MB each): the grid runs each object's
-    # episodes together, so a small cache loses nothing (docs/performance.md)
-    max_renderers: int = 2
-
-
-DEFAULT_CONTACT = MujocoContactSettings()
 # What "MuJoCo out of the box" means in docs/physics_mujoco.md (before/after measurements).
 NAIVE_CONTACT = MujocoContactSettings(
     solref=(0.02, 1.0),
@@ -784,11 +742,7 @@ class MujocoSimulator(Simulator):
         self._xml = None
 
 
-# The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "mujoco-5"  # 2: the shared push protocol; 3: compiled footprint friction;
-# 4: the step loop compiled (its 3x3 products in scalars, not BLAS: last-bit differences);
-# 5: the footprint friction's line search (results moved within the solver's tolerance)
-ENGINE_DISTRIBUTION = "mujoco"
-PHYSICS_SETTINGS = (DEFAULT_CONTACT, FrictionSettings())
+# The backend's revision and settings (bump the revision there when results change).
+PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = MUJOCO
 
 __all__ = ["DEFAULT_CONTACT", "NAIVE_CONTACT", "MujocoContactSettings", "MujocoSimulator"]

@@ -47,7 +47,6 @@ preallocated state arrays; a handful of 3-variable Newton iterations per step.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -63,6 +62,7 @@ from comexp.backends.floor_friction import (
     offsets_kernel,
     set_cop_kernel,
 )
+from comexp.backends.physics_settings import PLANAR, SlowSteps
 from comexp.experiment.contact import point_polygon_distance
 from comexp.experiment.interface import Simulator
 from comexp.method.rendering import render_prism_depth
@@ -378,19 +378,6 @@ def _pitch_rate_world(pg, ms):
     return -ny * ms[PITCH_W], nx * ms[PITCH_W]
 
 
-@dataclass(frozen=True)
-class SlowSteps:
-    """Where the motion is slow and smooth the model takes one step for several of the
-    protocol's: while the pusher moves no faster than `speed_m_s` and the object (flat on the
-    floor) no faster either, up to `steps` protocol steps are one step of their summed length
-    (the protocol's chunk of checks, `PlanarSimulator.check_every_steps`, is two). Quasi-static
-    pushing is such motion; an impact or a fast slide is not. `steps=1` turns it off. Its
-    cost in accuracy is in docs/physics.md's convergence table."""
-
-    speed_m_s: float = 0.05
-    steps: int = 5
-
-
 class PlanarModel:
     """State and time steps of the planar rigid-body model (SI units, world frame).
 
@@ -636,11 +623,7 @@ class PlanarSimulator(Simulator):
         self._model = None
 
 
-# The model's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "planar-5"  # 2: compiled steps; 3: the solver's start and line search
-# (results moved within the solver's tolerance); 4: the pitch about a support edge (a push
-# reports tipped by the tilt rule, as on the engines, not at the pitch's onset); 5: slow steps
-ENGINE_DISTRIBUTION = "numba"  # the kernels are compiled by it: its version is part of the physics
-PHYSICS_SETTINGS = (FrictionSettings(), SlowSteps())
+# The model's revision and settings (bump the revision there when results change).
+PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = PLANAR
 
 __all__ = ["PlanarModel", "PlanarSimulator", "SlowSteps"]

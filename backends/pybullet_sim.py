@@ -36,7 +36,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comexp.backends.floor_friction import FootprintFriction, FrictionSettings
+from comexp.backends.floor_friction import FootprintFriction
+from comexp.backends.physics_settings import (
+    PYBULLET,
+    PYBULLET_PUSHER_AXLE_INERTIA_M2,
+    PYBULLET_PUSHER_MASS_KG,
+    PYBULLET_SOLVER_ITERATIONS,
+)
 from comexp.experiment.contact import pusher_contact_height_m
 from comexp.experiment.interface import PARK_XY_M, Simulator
 from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES
@@ -74,14 +80,6 @@ def _import_pybullet_quietly():
 
 
 pb = _import_pybullet_quietly()
-
-
-# Pusher mass (kg): 500x the object's, so contact impulses change its velocity by < 0.2 %
-# of the object's change within a step; its velocity is re-imposed before every step.
-_PUSHER_MASS_KG = 100.0
-# The pusher's inertia about its axle per kg (m^2): ~0, so that rolling absorbs any vertical slip
-# at its contact within the step's solve (a valid tensor: a thin rod's).
-_PUSHER_AXLE_INERTIA_M2 = 1e-10
 
 
 def _fmt(x: float) -> str:
@@ -146,7 +144,7 @@ def _pusher_urdf(radius_m: float, mass_kg: float) -> str:
     vertical friction (the model's pusher friction acts in the floor's plane only; with Bullet's
     vertical friction a sticky pusher lifted a low object's pushed side and tilted it 1.14 deg),
     while about the other axes a large inertia keeps contact torques from turning it."""
-    i_axle = _fmt(mass_kg * _PUSHER_AXLE_INERTIA_M2)
+    i_axle = _fmt(mass_kg * PYBULLET_PUSHER_AXLE_INERTIA_M2)
     i = _fmt(mass_kg * 1.0)
     geom = f'<geometry><sphere radius="{_fmt(radius_m)}"/></geometry>'
     return (
@@ -196,17 +194,8 @@ def _window_projection(
     return m
 
 
-# The backend's revision: bump when a change changes results (it is part of episode identity).
-PHYSICS_VERSION = "pybullet-5"  # 2: shared push protocol; 3: compiled friction; 4: roller pusher;
-# 5: the footprint friction's line search (results moved within the solver's tolerance)
-ENGINE_DISTRIBUTION = "pybullet"
-# every setting of this backend that shapes its physics (module constants, solver settings)
-PHYSICS_SETTINGS = {
-    "pusher_mass_kg": _PUSHER_MASS_KG,
-    "pusher_axle_inertia_m2": _PUSHER_AXLE_INERTIA_M2,
-    "solver_iterations": 50,
-    "footprint": FrictionSettings(),
-}
+# The backend's revision and settings (bump the revision there when results change).
+PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = PYBULLET
 
 
 class PybulletSimulator(Simulator):
@@ -277,7 +266,7 @@ class PybulletSimulator(Simulator):
         pb.setPhysicsEngineParameter(
             fixedTimeStep=s.timestep_s,
             numSubSteps=0,
-            numSolverIterations=50,
+            numSolverIterations=PYBULLET_SOLVER_ITERATIONS,
             enableConeFriction=1,
             enableSAT=1,
             deterministicOverlappingPairs=1,
@@ -337,7 +326,7 @@ class PybulletSimulator(Simulator):
         pu = scene.pusher
         self._pusher_z = pusher_contact_height_m(pu, scene.obj.height_m)
         pusher_path = self._hashed_file(
-            "pusher", "urdf", _pusher_urdf(pu.radius_m, _PUSHER_MASS_KG)
+            "pusher", "urdf", _pusher_urdf(pu.radius_m, PYBULLET_PUSHER_MASS_KG)
         )
         self._pusher = pb.loadURDF(
             pusher_path,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from dataclasses import replace
 
 import pytest
@@ -46,13 +48,45 @@ def test_identity_names_backend_revision_engine_and_settings():
 
 
 def test_a_changed_backend_revision_changes_every_key(monkeypatch):
-    import comexp.backends.planar_sim as planar
+    import comexp.backends.physics_settings as physics
 
     a = _spec(physics=physics_identity("planar"))
-    monkeypatch.setattr(planar, "PHYSICS_VERSION", "planar-999")
+    bumped = physics.PLANAR._replace(version="planar-999")
+    monkeypatch.setitem(physics.BUILTIN_PHYSICS, "planar", bumped)
     b = _spec(physics=physics_identity("planar"))
     assert a.physics != b.physics
     assert episode_key(a) != episode_key(b)
+
+
+@pytest.mark.parametrize("name", ["planar", "pybullet", "mujoco"])
+def test_a_builtin_module_exports_the_physics_its_identity_reads(name):
+    """The driver reads a built-in's physics from `physics_settings` without its engine; the
+    backend's module (the plug-in contract's names) must say the same."""
+    import importlib
+
+    from comexp.backends.physics_settings import BUILTIN_PHYSICS
+    from comexp.experiment.registry import BACKENDS
+
+    module = importlib.import_module(BACKENDS[name].partition(":")[0])
+    version, engine, settings = BUILTIN_PHYSICS[name]
+    assert version == module.PHYSICS_VERSION and version.startswith(f"{name}-")
+    assert engine == module.ENGINE_DISTRIBUTION
+    assert repr(module.PHYSICS_SETTINGS) == repr(settings)
+
+
+def test_naming_the_physics_imports_no_engine():
+    """Expanding a grid names every episode's physics in the driver: no engine, Numba or the
+    episode loop may load for it (+79 MB of the driver's RSS with MuJoCo's)."""
+    code = (
+        "import sys\n"
+        "from comexp.experiment.registry import physics_identity\n"
+        "for b in ('planar', 'pybullet', 'mujoco'):\n"
+        "    physics_identity(b, options={} if b == 'planar' else {'floor_friction': 'model'})\n"
+        "heavy = ('mujoco', 'pybullet', 'numba', 'scipy', 'comexp.backends.floor_friction')\n"
+        "print(sorted(m for m in heavy if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
 
 
 def test_a_database_is_not_resumed_across_physics_versions(tmp_path):

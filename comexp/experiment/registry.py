@@ -48,15 +48,21 @@ def physics_identity(
     import hashlib
     from importlib import metadata
 
-    module, _ = resolve_backend(name)
-    engine = getattr(module, "ENGINE_DISTRIBUTION", None)
+    from comexp.backends.physics_settings import BUILTIN_PHYSICS
+
+    if name in BUILTIN_PHYSICS:  # read without importing the engine (the driver's memory)
+        version, engine, physics_settings = BUILTIN_PHYSICS[name]
+    else:
+        module, _ = resolve_backend(name)
+        version, physics_settings = module.PHYSICS_VERSION, module.PHYSICS_SETTINGS
+        engine = getattr(module, "ENGINE_DISTRIBUTION", None)
     engine_v = metadata.version(engine) if engine else "none"
     # the engine's own renderer is what every row had before `camera.renderer` existed: it is
     # left out, so that those rows keep their identity
     opts = {k: v for k, v in (options or {}).items() if (k, v) != ("renderer", "engine")}
-    text = repr((module.PHYSICS_SETTINGS, settings or SimSettings(), sorted(opts.items())))
+    text = repr((physics_settings, settings or SimSettings(), sorted(opts.items())))
     digest = hashlib.sha256(text.encode()).hexdigest()[:10]
-    return f"{name}/{module.PHYSICS_VERSION}/{engine or 'numpy'}-{engine_v}/{digest}"
+    return f"{name}/{version}/{engine or 'numpy'}-{engine_v}/{digest}"
 
 
 def backend_names() -> list[str]:

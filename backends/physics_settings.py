@@ -1,0 +1,140 @@
+"""What fixes each built-in backend's results: its model revision, the engine that computes
+it and every setting that shapes it, importable without any engine.
+
+The driver names an episode's physics (`comexp.experiment.registry.physics_identity`, part of
+every episode's key) from here, so expanding a grid or resuming a job loads no MuJoCo, pybullet
+or Numba (docs/performance.md, "Memory"). Each backend's module re-exports its own entry as
+`PHYSICS_VERSION`, `ENGINE_DISTRIBUTION` and `PHYSICS_SETTINGS`, the names a plug-in backend's
+module defines; `tests/test_registry.py` checks the two agree.
+
+**Bump a backend's version here when a change to its module changes results.** The settings
+enter the identity through their `repr`, which names the class, not this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+
+class BackendPhysics(NamedTuple):
+    version: str  # the model's revision: bump when a change changes results
+    engine_distribution: str  # the package that computes it: its version is part of the physics
+    settings: Any  # every setting that shapes the physics (hashed by repr)
+
+
+@dataclass(frozen=True)
+class FrictionSettings:
+    """Numerical settings of the footprint friction (their convergence is tested)."""
+
+    samples: int = 400  # target number of footprint area samples (grid cells)
+    smoothing_m_s: float = 1e-7  # |u| is smoothed below this slip inside the Newton solve only
+    newton_tol: float = 1e-13  # Newton decrement (J) at which a step's solve has converged
+    max_newton: int = 60
+    rest_snap_m_s: float = 1e-6  # a solved velocity this small, and no better than 0, is 0
+
+
+@dataclass(frozen=True)
+class SlowSteps:
+    """Where the motion is slow and smooth the model takes one step for several of the
+    protocol's: while the pusher moves no faster than `speed_m_s` and the object (flat on the
+    floor) no faster either, up to `steps` protocol steps are one step of their summed length
+    (the protocol's chunk of checks, `PlanarSimulator.check_every_steps`, is two). Quasi-static
+    pushing is such motion; an impact or a fast slide is not. `steps=1` turns it off. Its
+    cost in accuracy is in docs/physics.md's convergence table."""
+
+    speed_m_s: float = 0.05
+    steps: int = 5
+
+
+@dataclass(frozen=True)
+class MujocoContactSettings:
+    """Solver and contact parameters; the defaults are the validated ones.
+
+    `solref`/`solimp` apply to every contact pair (the pusher pair takes `pusher_solref`).
+    `multiccd` asks the convex collider for several contact points per mesh pair (MuJoCo >= 3.3
+    understands the flag; MuJoCo 4 has it on by default). `pusher_mass_kg` must dwarf the
+    object's 0.2 kg: the pusher coasts through a chunk of steps at its commanded velocity, and
+    the object's reaction must not slow it (1e6 kg: < 1e-7 m/s per chunk).
+    """
+
+    solref: tuple[float, float] = (0.004, 1.0)
+    solimp: tuple[float, float, float, float, float] = (0.95, 0.99, 0.0005, 0.5, 2.0)
+    solreffriction: tuple[float, float] = (0.01, 1.0)  # (0, 0): friction rows use solref
+    impratio: float = 1.0
+    noslip_iterations: int = 0
+    integrator: str = "implicitfast"
+    iterations: int = 50
+    tolerance: float = 1e-10
+    multiccd: bool = True
+    use_box_geoms: bool = True  # rectangles as primitive boxes (exact box-box collider)
+    support_spacing_m: float = 0.01  # > 0: floor contact through small spheres (see header)
+    support_min_points: int = 8  # the grid spacing is halved until the core has this many
+    support_layout: str = "symmetric"  # "grid": uniform grid over the footprint (comparison)
+    support_radius_m: float = 0.001
+    rim_lift_m: float = 0.0005  # rim supports sit this high: they touch only when tilted
+    rim_frictionless: bool = False  # True: normal support only (see docs, open problems)
+    rim_grid: bool = False  # True: rim also on a grid over the rest of the footprint
+    build_settle_s: float = 0.1
+    substeps: int = 1  # physics steps per SimSettings.timestep_s (pusher command rate)
+    pusher_mass_kg: float = 1.0e6
+    pusher_geom: str = "capsule"  # "cylinder": MuJoCo's general convex collider (see header)
+    # the pusher pair over-damped (damping ratio 2): a plastic impact, as in the model; at
+    # critical damping the object left the pusher at impact and the push turned 49.2 or
+    # 53.2 deg by float rounding (planar 51.2; the same push at 8 yaws, mu 0.1, 40 cm/s)
+    pusher_solref: tuple[float, float] | None = (0.005, 2.0)  # None: `solref`
+    cone: str = "elliptic"
+    # experimental, off by default (measured in docs/physics_mujoco.md, "Root cause 3"):
+    floor_margin_m: float = 0.0  # > 0: core contacts active up to this gap (smooth hover)
+    ring_min_points: int = 16  # support_layout "rings": points on the smallest ring
+    pusher_sleeve_kg: float = 0.0  # > 0: pusher geom on a free vertical slide of this mass
+    # depth renderers kept (one per object geometry, ~80 MB each): the grid runs each object's
+    # episodes together, so a small cache loses nothing (docs/performance.md)
+    max_renderers: int = 2
+
+
+DEFAULT_CONTACT = MujocoContactSettings()
+
+# pybullet's pusher (backends/pybullet_sim.py). Its mass (kg): 500x the object's, so contact
+# impulses change its velocity by < 0.2 % of the object's change within a step; its velocity is
+# re-imposed before every step.
+PYBULLET_PUSHER_MASS_KG = 100.0
+# The pusher's inertia about its axle per kg (m^2): ~0, so that rolling absorbs any vertical slip
+# at its contact within the step's solve (a valid tensor: a thin rod's).
+PYBULLET_PUSHER_AXLE_INERTIA_M2 = 1e-10
+PYBULLET_SOLVER_ITERATIONS = 50
+
+
+PLANAR = BackendPhysics(
+    # 2: compiled steps; 3: the solver's start and line search (results moved within the
+    # solver's tolerance); 4: the pitch about a support edge (a push reports tipped by the tilt
+    # rule, as on the engines, not at the pitch's onset); 5: slow steps
+    "planar-5",
+    "numba",  # the kernels are compiled by it
+    (FrictionSettings(), SlowSteps()),
+)
+PYBULLET = BackendPhysics(
+    # 2: shared push protocol; 3: compiled friction; 4: roller pusher; 5: the footprint
+    # friction's line search (results moved within the solver's tolerance)
+    "pybullet-5",
+    "pybullet",
+    {
+        "pusher_mass_kg": PYBULLET_PUSHER_MASS_KG,
+        "pusher_axle_inertia_m2": PYBULLET_PUSHER_AXLE_INERTIA_M2,
+        "solver_iterations": PYBULLET_SOLVER_ITERATIONS,
+        "footprint": FrictionSettings(),
+    },
+)
+MUJOCO = BackendPhysics(
+    # 2: the shared push protocol; 3: compiled footprint friction; 4: the step loop compiled
+    # (its 3x3 products in scalars, not BLAS: last-bit differences); 5: the footprint
+    # friction's line search (results moved within the solver's tolerance)
+    "mujoco-5",
+    "mujoco",
+    (DEFAULT_CONTACT, FrictionSettings()),
+)
+BUILTIN_PHYSICS: dict[str, BackendPhysics] = {
+    "planar": PLANAR,
+    "pybullet": PYBULLET,
+    "mujoco": MUJOCO,
+}
