@@ -45,6 +45,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from comexp.experiment.task import EpisodeResult, EpisodeSpec
@@ -472,6 +473,61 @@ def compare_baseline(backend: str, n: int, speed: float, floor: str, baseline: s
     ]
 
 
+def cprofile_lines(
+    backend: str, n: int, speed: float, floor: str, overrides: Sequence[str], top: int
+) -> list[str]:
+    """The same strided episodes under cProfile with the CPU clock (after one warm-up episode
+    per object): the functions taking the largest share of the episodes' CPU, by cumulative and
+    by own time. Where an episode's time goes at function level (docs/performance.md)."""
+    import cProfile
+    import pstats
+
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.simulator import make_simulator
+
+    specs = strided(job_specs(backend, floor, speed, overrides), n)
+    sim = make_simulator(backend, **job_backend_options(backend, floor, speed, overrides))
+    try:
+        first: dict[str, EpisodeSpec] = {}
+        for s in specs:
+            first.setdefault(s.object, s)
+        for s in first.values():
+            run_episode(s, sim)
+        prof = cProfile.Profile(time.process_time)
+        cpu0 = time.process_time()
+        prof.enable()
+        for s in specs:
+            run_episode(s, sim)
+        prof.disable()
+        cpu_s = time.process_time() - cpu0
+    finally:
+        sim.close()
+    stats = pstats.Stats(prof).stats  # {(file, line, name): (cc, nc, own, cum, callers)}
+    root = Path(__file__).resolve().parents[1]
+
+    def name(key: tuple) -> str:
+        path, line, func = key
+        try:
+            path = str(Path(path).resolve().relative_to(root))
+        except ValueError:
+            path = Path(path).name
+        return f"{path}:{line}({func})"
+
+    lines = [
+        f"== cProfile: {backend} {floor} {speed:g} cm/s, {len(specs)} episodes, "
+        f"CPU {1e3 * cpu_s / len(specs):.0f} ms/episode (with the profiler's overhead)"
+    ]
+    for title, col in (("cumulative", 3), ("own", 2)):
+        lines.append(f"top {top} by {title} CPU: share, ms/episode, calls/episode, function")
+        rows = sorted(stats.items(), key=lambda kv: -kv[1][col])[:top]
+        for key, st in rows:
+            lines.append(
+                f"  {100 * st[col] / cpu_s:5.1f}%  {1e3 * st[col] / len(specs):7.1f}  "
+                f"{st[1] / len(specs):8.1f}  {name(key)}"
+            )
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--backend", choices=("planar", "pybullet", "mujoco"), default="pybullet")
@@ -492,6 +548,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--dump", help="write per-episode results as JSON")
     ap.add_argument("--engine-output", action="store_true", help="keep the engine's own prints")
     ap.add_argument("--baseline", help="dir with perception.py/estimator.py to compare against")
+    ap.add_argument(
+        "--cprofile", type=int, metavar="TOP", help="cProfile the episodes: the TOP functions"
+    )
     a = ap.parse_args(argv)
     if a.baseline:
         with engine_stdout_silenced(not a.engine_output):
@@ -501,8 +560,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     with engine_stdout_silenced(not a.engine_output):
         overrides = [f"backend.floor_friction={a.floor_friction}"] if a.floor_friction else []
         overrides += [f"camera.renderer={a.renderer}"] if a.renderer else []
-        o = profile(a.backend, a.episodes, a.speed, a.floor, a.dump, a.raw_seconds, overrides)
-    report(o)
+        if a.cprofile:
+            lines = cprofile_lines(a.backend, a.episodes, a.speed, a.floor, overrides, a.cprofile)
+        else:
+            o = profile(a.backend, a.episodes, a.speed, a.floor, a.dump, a.raw_seconds, overrides)
+    if a.cprofile:
+        print("\n".join(lines))
+    else:
+        report(o)
     return 0
 
 

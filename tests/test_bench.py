@@ -130,6 +130,19 @@ def test_episode_profile_smoke(tmp_path, monkeypatch, capfd):
     assert len(json.loads(dump.read_text())) == 1
 
 
+def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
+    out = run_bench(
+        "episode_profile.py",
+        *("--backend", "planar", "--episodes", "1", "--cprofile", "40"),
+        monkeypatch=monkeypatch,
+        capfd=capfd,
+    )
+    assert figure(r"CPU {n} ms/episode", out) > 0
+    assert "episode.py:" in out and "(run_episode)" in out
+    step = re.search(r"\n\s+([\d.]+)%\s+[\d.]+\s+[\d.]+\s+backends/planar_sim.py:\d+\(_run\)", out)
+    assert step and 0 < float(step.group(1)) < 100
+
+
 def test_step_cost_smoke(monkeypatch, capfd):
     out = run_bench(
         "step_cost.py",
