@@ -428,3 +428,50 @@ def test_motion_episodes_carry_the_model_version_in_their_key() -> None:
     pinned = replace(motion, estimator=replace(motion.estimator, motion_version=MOTION_VERSION))
     assert episode_key(pinned) != episode_key(motion)
     assert f'"motion_version":"{MOTION_VERSION}"' in canonical_json(pinned.estimator)
+
+
+def test_with_the_oracle_the_path_is_the_true_motion(monkeypatch) -> None:
+    """`rotation_source=oracle` hands the estimator the true poses at the camera's frames (the
+    path without vision's errors): the first push (the same command under both sources) shows
+    the tracker's path within its noise, and every oracle path ends on the push's true turn."""
+    from dataclasses import replace
+
+    from test_episode import spec_for
+
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.simulator import make_simulator
+
+    seen: dict[str, list] = {"vision": [], "oracle": []}
+    source = ["vision"]
+    original = MotionEstimator.observe_path
+
+    def spy(self, path):
+        seen[source[0]].append(path)
+        return original(self, path)
+
+    monkeypatch.setattr(MotionEstimator, "observe_path", spy)
+    spec = spec_for(method="motion", fps=30.0, mu=0.1)
+    spec = replace(spec, backend="planar", estimator=replace(spec.estimator, n_push=2))
+    results = {}
+    for src in ("vision", "oracle"):
+        source[0] = src
+        s = replace(spec, estimator=replace(spec.estimator, rotation_source=src))
+        results[src] = run_episode(s, make_simulator("planar"))
+        assert results[src].status == "ok", (results[src].failure, results[src].detail)
+    oracle, vision = seen["oracle"], seen["vision"]
+    assert len(oracle) == 2 and all(len(p.poses) >= 3 for p in oracle)
+    for path, rec in zip(oracle, results["oracle"].pushes, strict=True):
+        turn = path.pose_after.yaw_rad - path.pose_before.yaw_rad
+        turn_deg = math.degrees(math.remainder(turn, math.tau))
+        assert turn_deg == pytest.approx(rec.rotation_true_deg, abs=1e-6)
+        assert all(b > a for a, b in zip(path.t_s, path.t_s[1:], strict=False))
+    by_t = {round(t, 6): p for t, p in zip(oracle[0].t_s, oracle[0].poses, strict=True)}
+    common = [
+        (by_t[round(t, 6)], p)
+        for t, p in zip(vision[0].t_s, vision[0].poses, strict=True)
+        if round(t, 6) in by_t
+    ]
+    assert len(common) >= 3
+    for true, tracked in common:  # the tracker's noise: tenths of a degree, a millimetre
+        assert abs(math.degrees(true.yaw_rad - tracked.yaw_rad)) < 1.0
+        assert math.hypot(true.x_m - tracked.x_m, true.y_m - tracked.y_m) < 0.002

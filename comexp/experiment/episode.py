@@ -171,11 +171,24 @@ class _EpisodeLoop:
 
     def _watched_push(self, cmd: PushCommand) -> tuple[PushOutcome, int]:
         """The push, with the tracker following it through camera frames when it watches
-        (vision, `camera.fps` > 0); returns the outcome and the frames the tracker used."""
+        (vision, `camera.fps` > 0); returns the outcome and the frames the tracker used.
+        With `rotation_source=oracle` an estimator that uses the path (`observe_path`) gets the
+        true poses at every camera frame instead: the path without vision's errors."""
         tracker, settings = self.tracker, self.settings
         self.path.clear()
-        if tracker is None or not self.spec.camera_fps > 0:
+        if not self.spec.camera_fps > 0:
             return self.sim.push(cmd), 0
+        if tracker is None:
+            if not hasattr(self.est, "observe_path"):
+                return self.sim.push(cmd), 0
+            # the estimator frame moves rigidly with the object: carried by the true pose
+            offset = self.true_prev.relative(self.frame)
+
+            def on_true_frame(f: Frame) -> None:
+                self.path.append((f.t_s, self.sim.true_pose().compose(offset)))
+
+            interval_s = 1.0 / self.spec.camera_fps
+            return self.sim.push(cmd, on_frame=on_true_frame, frame_interval_s=interval_s), 0
         used = 0
         tracker.begin_push()
 
