@@ -109,8 +109,9 @@ class PushPath:
 G_ACC = 9.81  # m/s^2
 
 # The model's revision: bumped whenever the estimates change (pinned in motion episodes' keys,
-# `EstimatorSettings.motion_version`). motion-2: the floor fitted per episode from the slides.
-MOTION_VERSION = "motion-2"
+# `EstimatorSettings.motion_version`). motion-2: the floor fitted per episode from the slides;
+# motion-3: the early frames' term tempered (`MotionSettings.early_weight`), rel_model 0.15.
+MOTION_VERSION = "motion-3"
 
 
 @dataclass(frozen=True)
@@ -126,7 +127,11 @@ class MotionSettings:
     impulse_share: float = 0.5
     sigma_turn_deg: float = 0.3  # vision noise of a tracked frame's yaw
     sigma_move_m: float = 0.0005  # vision noise of a tracked frame's position
-    rel_model: float = 0.3  # relative model error of the impulse relation
+    rel_model: float = 0.15  # relative model error of the impulse relation
+    # the early frames' log-likelihood counts at this weight: their model errors are shared by
+    # an episode's pushes (the same floor acts within each first frame, the same Izz and
+    # tracker), so five pushes are not five independent measurements
+    early_weight: float = 0.5
     rel_model_rate: float = 0.0  # ... growing by this much per second after the impact
     max_frames: int = 1
     sign_eps: float = 0.15  # chance that a net turn has the wrong sign (floor, vision)
@@ -225,7 +230,7 @@ def early_loglik(
     over the first instants the turn theta and the CoM's displacement d_G obey
     theta rho^2 = (P - G) x d_G, rho^2 = Izz / m, whatever the pusher's friction (it only tilts
     J) and the floor's. d_G follows from the tracked origin's displacement d_O and the turn:
-    d_G = d_O + (R(theta) - I) G.
+    d_G = d_O + (R(theta) - I) G. Tempered by `early_weight` (errors shared across pushes).
     """
     out = np.zeros((len(G), len(rho2)))
     s_th = math.radians(ms.sigma_turn_deg)
@@ -245,7 +250,7 @@ def early_loglik(
                 + (rel * m[:, None]) ** 2
             )
             out += -0.5 * e * e / var - 0.5 * np.log(var)
-    return out
+    return ms.early_weight * out
 
 
 def direction_loglik(G: np.ndarray, feats: list[PushFeatures], mu: np.ndarray, ms: MotionSettings):
