@@ -742,7 +742,8 @@ class MujocoSimulator(Simulator):
         self._xml = None
 
 
-# The backend's revision and settings (bump the revision there when results change).
+# The backend's revision and settings live in backends/physics_settings.py: bump the
+# revision there when a change here changes results.
 PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = MUJOCO
 
 __all__ = ["DEFAULT_CONTACT", "NAIVE_CONTACT", "MujocoContactSettings", "MujocoSimulator"]

@@ -623,7 +623,8 @@ class PlanarSimulator(Simulator):
         self._model = None
 
 
-# The model's revision and settings (bump the revision there when results change).
+# The model's revision and settings live in backends/physics_settings.py (PLANAR): bump the
+# revision there when a change here changes results.
 PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = PLANAR
 
 __all__ = ["PlanarModel", "PlanarSimulator", "SlowSteps"]

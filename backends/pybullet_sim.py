@@ -194,7 +194,8 @@ def _window_projection(
     return m
 
 
-# The backend's revision and settings (bump the revision there when results change).
+# The backend's revision and settings live in backends/physics_settings.py: bump the
+# revision there when a change here changes results.
 PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = PYBULLET
 
 
