@@ -5,7 +5,7 @@ The driver names an episode's physics (`comexp.experiment.registry.physics_ident
 every episode's key) from here, so expanding a grid or resuming a job loads no MuJoCo, pybullet
 or Numba (docs/performance.md, "Memory"). Each backend's module re-exports its own entry as
 `PHYSICS_VERSION`, `ENGINE_DISTRIBUTION` and `PHYSICS_SETTINGS`, the names a plug-in backend's
-module defines; `tests/test_registry.py` checks the two agree.
+module defines; `tests/test_physics_identity.py` checks the two agree.
 
 **Bump a backend's version here when a change to its module changes results.** The settings
 enter the identity through their `repr`, which names the class, not this module.

@@ -274,6 +274,19 @@ def result_record(r: EpisodeResult) -> dict[str, Any]:
     }
 
 
+def warm_up(specs: Sequence[EpisodeSpec], sim: Any) -> int:
+    """Run the first episode of each object once, untimed (the engine's one-offs per object:
+    compilation, scene caches); returns how many ran."""
+    from comexp.experiment.episode import run_episode
+
+    first: dict[str, EpisodeSpec] = {}
+    for s in specs:
+        first.setdefault(s.object, s)
+    for s in first.values():
+        run_episode(s, sim)
+    return len(first)
+
+
 def profile(
     backend: str,
     n: int,
@@ -299,14 +312,9 @@ def profile(
         "source": out_digest,
     }
     try:
-        # warm-up: one episode per object, untimed phases (engine one-offs per object)
-        first: dict[str, EpisodeSpec] = {}
-        for s in specs:
-            first.setdefault(s.object, s)
         t0 = time.perf_counter()
-        for s in first.values():
-            run_episode(s, sim)
-        out["warmup_s_per_ep"] = (time.perf_counter() - t0) / len(first)
+        n_warm = warm_up(specs, sim)
+        out["warmup_s_per_ep"] = (time.perf_counter() - t0) / n_warm
 
         results: list[EpisodeResult] = []
         walls: list[float] = []
@@ -488,11 +496,7 @@ def cprofile_lines(
     specs = strided(job_specs(backend, floor, speed, overrides), n)
     sim = make_simulator(backend, **job_backend_options(backend, floor, speed, overrides))
     try:
-        first: dict[str, EpisodeSpec] = {}
-        for s in specs:
-            first.setdefault(s.object, s)
-        for s in first.values():
-            run_episode(s, sim)
+        warm_up(specs, sim)
         prof = cProfile.Profile(time.process_time)
         cpu0 = time.process_time()
         prof.enable()

@@ -368,3 +368,22 @@ def test_spec_for_object_copies_the_object_definition():
     assert spec.outline_cm == tuple(tuple(p) for p in obj.outline_cm)
     assert spec.height_cm == obj.height_cm
     hash(spec)  # frozen and hashable: plain tuples of floats, no lists
+
+
+def test_a_recentred_push_is_flagged_in_its_path(monkeypatch):
+    """The estimator that reads each push's path learns which pushes were followed by a
+    re-centring (their pose at rest is the placed one, not where the slide ended)."""
+    from comexp.method.motion_estimator import MotionEstimator
+
+    flags: list[bool] = []
+    original = MotionEstimator.observe_path
+
+    def spy(self, path):
+        flags.append(bool(path.extra.get("recentred")))
+        return original(self, path)
+
+    monkeypatch.setattr(MotionEstimator, "observe_path", spy)
+    res = run_episode(spec_for(seed=5, method="motion"), KinematicSim(slide_m=0.12))
+    assert res.status == "ok", res.detail
+    assert len(flags) == res.n_pushes and any(flags)
+    assert sum(flags) == res.detail.count("re-centred")

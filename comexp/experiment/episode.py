@@ -137,9 +137,7 @@ class _EpisodeLoop:
             return self.failed(out.status.value, f"push {k}: {out.status.value}")
         if not out.contact_made:
             self.details.append(f"push {k}: pusher missed the object")
-        n_notes = len(self.details)
-        new_frame, true_now, rot, rot_true = self._measure(k, out, used)
-        recentred = len(self.details) > n_notes  # `_measure` notes a re-centring, only that
+        new_frame, true_now, rot, rot_true, recentred = self._measure(k, out, used)
         line = None
         if settings.method == "magnitude" and settings.mag_floor_model:
             # the robot knows its floor and pusher; the yaw is the estimator's own (vision)
@@ -215,15 +213,18 @@ class _EpisodeLoop:
         )
         return out, used
 
-    def _measure(self, k: int, out: PushOutcome, used: int) -> tuple[Pose2D, Pose2D, float, float]:
+    def _measure(
+        self, k: int, out: PushOutcome, used: int
+    ) -> tuple[Pose2D, Pose2D, float, float, bool]:
         """After push `k`: re-centre the object if it drifted off, then the estimator frame's
-        new pose, the true pose, and the measured and true turns (deg)."""
+        new pose, the true pose, the measured and true turns (deg) and whether it re-centred."""
         sim = self.sim
         true_now = sim.true_pose()
         rot_true = out.true_rotation_deg
         if rot_true is None:  # a simulator that does not track it: wrapped
             rot_true = math.degrees(wrap_angle(true_now.yaw_rad - self.true_prev.yaw_rad))
-        if needs_recentering(true_now, self.spec.recenter_beyond_cm):
+        recentred = needs_recentering(true_now, self.spec.recenter_beyond_cm)
+        if recentred:
             sim.build(replace(self.scene, initial_pose=Pose2D(0.0, 0.0, true_now.yaw_rad)))
             # Placement keeps the yaw, so it adds no rotation; the next image (vision) or the
             # placed true pose (oracle) carries the estimator frame along.
@@ -237,4 +238,4 @@ class _EpisodeLoop:
         else:  # oracle: carry the frame with the true rigid motion
             new_frame = true_now.compose(self.true_prev.relative(self.frame))
             rot = rot_true
-        return new_frame, true_now, rot, rot_true
+        return new_frame, true_now, rot, rot_true, recentred
