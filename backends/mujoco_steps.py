@@ -26,7 +26,9 @@ import numpy as np
 from llvmlite import binding as llvm
 from numba import njit, types
 
+from comexp.backends import floor_friction
 from comexp.backends.floor_friction import impulse_kernel
+from comexp.backends.kernel_cache import stamp_with_sources
 
 
 def _libmujoco() -> str:
@@ -132,3 +134,7 @@ def push_steps(
         touched = touched or pushed
         min_cos_tilt = min(min_cos_tilt, cos_tilt(qpos[obj_q + 4], qpos[obj_q + 5]))
     return touched, pushed, min_cos_tilt
+
+
+# the chunk above compiles the friction kernel into its own machine code
+stamp_with_sources(globals(), floor_friction)

@@ -108,15 +108,17 @@ PYBULLET_SOLVER_ITERATIONS = 50
 PLANAR = BackendPhysics(
     # 2: compiled steps; 3: the solver's start and line search (results moved within the
     # solver's tolerance); 4: the pitch about a support edge (a push reports tipped by the tilt
-    # rule, as on the engines, not at the pitch's onset); 5: slow steps
-    "planar-5",
+    # rule, as on the engines, not at the pitch's onset); 5: slow steps; 6: the footprint's
+    # sample loops as SIMD loops (their sums reassociated: last-bit differences)
+    "planar-6",
     "numba",  # the kernels are compiled by it
     (FrictionSettings(), SlowSteps()),
 )
 PYBULLET = BackendPhysics(
     # 2: shared push protocol; 3: compiled friction; 4: roller pusher; 5: the footprint
-    # friction's line search (results moved within the solver's tolerance)
-    "pybullet-5",
+    # friction's line search (results moved within the solver's tolerance); 6: the footprint's
+    # sample loops as SIMD loops (last-bit differences)
+    "pybullet-6",
     "pybullet",
     {
         "pusher_mass_kg": PYBULLET_PUSHER_MASS_KG,
@@ -128,8 +130,9 @@ PYBULLET = BackendPhysics(
 MUJOCO = BackendPhysics(
     # 2: the shared push protocol; 3: compiled footprint friction; 4: the step loop compiled
     # (its 3x3 products in scalars, not BLAS: last-bit differences); 5: the footprint
-    # friction's line search (results moved within the solver's tolerance)
-    "mujoco-5",
+    # friction's line search (results moved within the solver's tolerance); 6: the footprint's
+    # sample loops as SIMD loops (last-bit differences)
+    "mujoco-6",
     "mujoco",
     (DEFAULT_CONTACT, FrictionSettings()),
 )

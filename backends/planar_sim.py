@@ -52,6 +52,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from comexp.backends import floor_friction
 from comexp.backends.floor_friction import (
     COP_X,
     COP_Y,
@@ -62,6 +63,7 @@ from comexp.backends.floor_friction import (
     offsets_kernel,
     set_cop_kernel,
 )
+from comexp.backends.kernel_cache import stamp_with_sources
 from comexp.backends.physics_settings import PLANAR, SlowSteps
 from comexp.experiment.contact import point_polygon_distance
 from comexp.experiment.interface import Simulator
@@ -376,6 +378,10 @@ def _pitch_rate_world(pg, ms):
     nx = c * pg.edge_n[e, 0] - s * pg.edge_n[e, 1]
     ny = s * pg.edge_n[e, 0] + c * pg.edge_n[e, 1]
     return -ny * ms[PITCH_W], nx * ms[PITCH_W]
+
+
+# the steps above compile the friction kernels into their own machine code
+stamp_with_sources(globals(), floor_friction)
 
 
 class PlanarModel:
