@@ -681,7 +681,7 @@ class MujocoSimulator(Simulator):
         the rest is fixed cost: scene update, read-back)."""
         _, d = self._require()
         if self.renderer == "raycast":
-            return self._raycast_depth()
+            return self._raycast_tracking_depth()
         scene = self._scene
         model = scene.camera.model()
         win = object_window_px(model, scene.obj.outline_m, scene.obj.height_m, self.object_state())

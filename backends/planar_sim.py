@@ -67,7 +67,7 @@ from comexp.backends.kernel_cache import stamp_with_sources
 from comexp.backends.physics_settings import PLANAR, SlowSteps
 from comexp.experiment.contact import point_polygon_distance
 from comexp.experiment.interface import Simulator
-from comexp.method.rendering import render_prism_depth
+from comexp.method.rendering import render_prism_depth, render_prism_window_depth
 from comexp.method.scene import (
     GRAVITY_M_S2,
     DepthImage,
@@ -585,6 +585,12 @@ class PlanarSimulator(Simulator):
         m = self._require()
         pose = self.object_state().pose
         return render_prism_depth(self._camera, m.outline, m.obj.height_m, pose)
+
+    def render_tracking_depth(self) -> DepthImage:
+        """Only the window the prism can cover (`render_prism_window_depth`)."""
+        m = self._require()
+        pose = self.object_state().pose
+        return render_prism_window_depth(self._camera, m.outline, m.obj.height_m, pose)
 
     # --- protocol primitives ---------------------------------------------------------------
     def _place_pusher(self, xy) -> None:

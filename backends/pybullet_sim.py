@@ -533,7 +533,7 @@ class PybulletSimulator(Simulator):
         needs the object only."""
         scene = self._require_scene()
         if self.renderer == "raycast":
-            return self._raycast_depth()
+            return self._raycast_tracking_depth()
         cam = scene.camera
         model = cam.model()
         win = object_window_px(model, scene.obj.outline_m, scene.obj.height_m, self.object_state())

@@ -1,8 +1,9 @@
 """The cheaper paths of a tracking frame agree with what they replaced: the tracker's ICP
-kernel with `PoseTracker._icp` (the numpy ICP `fit` still runs), on real frames of every
-built-in object at random poses and seeds, up to rounding; planar's ray cast with the numpy
-one (`render_prism_depth_numpy`), pixel for pixel; `mask_pusher` and `observe_boundary` with
-their numpy versions before (kept below), exactly."""
+kernel (`fit` and `track` run it) with `PoseTracker._icp`, on real frames of every built-in
+object at random poses and seeds, up to rounding; planar's ray cast with the numpy one
+(`render_prism_depth_numpy`), pixel for pixel; the window a tracking frame renders with the
+full image, pixel for pixel and in what the tracker sees of it; `mask_pusher` and
+`observe_boundary` with their numpy versions before (kept below), exactly."""
 
 from __future__ import annotations
 
@@ -23,7 +24,12 @@ from comexp.method.observation import (
     observe_boundary,
     perceive_first,
 )
-from comexp.method.rendering import _prism_kernel, render_prism_depth, render_prism_depth_numpy
+from comexp.method.rendering import (
+    _prism_kernel,
+    render_prism_depth,
+    render_prism_depth_numpy,
+    render_prism_window_depth,
+)
 from comexp.method.scene import CameraSpec, DepthImage, Pose2D
 from comexp.method.tracking import PoseTracker, _icp_kernel
 
@@ -131,6 +137,39 @@ def test_render_prism_depth_is_the_numpy_ray_cast_pixel_for_pixel():
         np.testing.assert_array_equal(new, ref)
         n_object_px += int(np.sum(ref < CAM.position_m[2]))
     assert n_object_px > 100_000  # the poses do show objects (top faces and walls)
+
+
+def test_a_tracking_frame_s_window_is_the_full_image_s_and_tracks_the_same():
+    """The window (`render_prism_window_depth`) holds the full image's pixels at the same
+    world points, the full image is floor outside it, and the pusher mask and the boundary
+    the tracker fits are the same, to the bit, with the pusher touching the object."""
+    hz = CAM.position_m[2]
+    n_cropped = 0
+    for k, (outline, height, pose) in enumerate(_random_prisms(120, seed=12)):
+        full = render_prism_depth(CAM, outline, height, pose)
+        win = render_prism_window_depth(CAM, outline, height, pose)
+        cam = win.camera
+        u0, v0 = round(CAM.cx_px - cam.cx_px), round(CAM.cy_px - cam.cy_px)
+        h, w = win.depth_m.shape
+        assert (cam.width_px, cam.height_px) == (w, h)
+        n_cropped += (w, h) != (CAM.width_px, CAM.height_px)
+        np.testing.assert_array_equal(win.depth_m, full.depth_m[v0 : v0 + h, u0 : u0 + w])
+        rest = full.depth_m.copy()
+        rest[v0 : v0 + h, u0 : u0 + w] = hz
+        assert np.all(rest == hz)
+        world = pose.to_world(outline)
+        corner = world[k % len(world)]
+        out = corner - pose.to_world(np.zeros((1, 2)))[0]
+        pusher = corner + 0.006 * out / np.linalg.norm(out)
+        near = tuple(pose.to_world(np.zeros((1, 2)))[0])
+        try:
+            ref = observe_boundary(mask_pusher(full, tuple(pusher), 0.005), near)
+        except PerceptionError:
+            continue
+        got = observe_boundary(mask_pusher(win, tuple(pusher), 0.005), near)
+        np.testing.assert_array_equal(got.contour_m, ref.contour_m)
+        np.testing.assert_array_equal(got.centroid_m, ref.centroid_m)
+    assert n_cropped > 100
 
 
 def test_render_prism_depth_pixels_on_an_edge_are_shapely_s():

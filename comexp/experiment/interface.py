@@ -192,6 +192,16 @@ class Simulator(ABC):
             self._camera_model(), self._outline_m(), scene.obj.height_m, self.object_state().pose
         )
 
+    def _raycast_tracking_depth(self) -> DepthImage:
+        """`_raycast_depth`'s pixels of the window the prism can cover only, with that
+        window's camera model (`render_prism_window_depth`): a tracking frame's image."""
+        from comexp.method.rendering import render_prism_window_depth
+
+        scene = self._scene_or_fail()
+        return render_prism_window_depth(
+            self._camera_model(), self._outline_m(), scene.obj.height_m, self.object_state().pose
+        )
+
     def _steps_still(self, targets: np.ndarray) -> int:
         """How many of the pusher's next `targets` (one per step) surely leave the object
         exactly as it is: a backend that can prove it (the object exactly at rest, nothing

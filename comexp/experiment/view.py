@@ -8,7 +8,6 @@ Geometry of the top-down camera and the object's outline, shared by the push pro
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
@@ -84,13 +83,5 @@ def object_window_px(
 def crop_camera(
     camera: CameraModel, u0: int, v0: int, width_px: int, height_px: int
 ) -> CameraModel:
-    """The camera model of the window of `camera`'s image whose top-left pixel is (u0, v0):
-    the same camera (pose, focal lengths), the principal point moved by the offset, so that
-    pixel (u, v) of the window back-projects to the world point of pixel (u0 + u, v0 + v)."""
-    return replace(
-        camera,
-        width_px=width_px,
-        height_px=height_px,
-        cx_px=camera.cx_px - u0,
-        cy_px=camera.cy_px - v0,
-    )
+    """`CameraModel.crop`: the camera model of a window of `camera`'s image."""
+    return camera.crop(u0, v0, width_px, height_px)

@@ -144,19 +144,58 @@ def render_prism_depth(
     hz = float(camera.position_m[2])
     depth_img = np.full((camera.height_px, camera.width_px), hz)
     win = _prism_window(camera, pose.to_world(outline), height_m)
+    if win is not None:
+        _ray_cast_window(camera, outline, float(height_m), pose, win, depth_img)
+    return DepthImage(depth_img, camera)
+
+
+def render_prism_window_depth(
+    camera: CameraModel,
+    outline_m: np.ndarray,
+    height_m: float,
+    pose: Pose2D,
+    margin_px: int = 2,
+) -> DepthImage:
+    """`render_prism_depth`'s pixels of the window that can see the prism, `margin_px` of
+    floor wider each side (clipped to the image), with that window's camera model
+    (`crop_camera`: its pixels back-project to the same world points): a tracking frame
+    needs only the object, and the full image is ~25x more pixels to fill and threshold.
+    The full image when no pixel can see it."""
+    outline = np.ascontiguousarray(outline_m, dtype=float)
+    win = _prism_window(camera, pose.to_world(outline), height_m)
     if win is None:
-        return DepthImage(depth_img, camera)
+        return render_prism_depth(camera, outline, height_m, pose)
+    wu0, wu1, wv0, wv1 = win
+    u0, v0 = max(wu0 - margin_px, 0), max(wv0 - margin_px, 0)
+    u1 = min(wu1 + margin_px, camera.width_px - 1)
+    v1 = min(wv1 + margin_px, camera.height_px - 1)
+    crop = camera.crop(u0, v0, u1 - u0 + 1, v1 - v0 + 1)
+    depth_img = np.full((v1 - v0 + 1, u1 - u0 + 1), float(camera.position_m[2]))
+    local = (wu0 - u0, wu1 - u0, wv0 - v0, wv1 - v0)
+    _ray_cast_window(crop, outline, float(height_m), pose, local, depth_img)
+    return DepthImage(depth_img, crop)
+
+
+def _ray_cast_window(
+    camera: CameraModel,
+    outline: np.ndarray,
+    h: float,
+    pose: Pose2D,
+    win: tuple[int, int, int, int],
+    depth_img: np.ndarray,
+) -> None:
+    """Ray-cast the pixels of `win` into `depth_img` (`_prism_kernel`), shapely settling
+    those within `PRISM_NEAR_EDGE_M` of the outline."""
+    hz = float(camera.position_m[2])
     x0, y0, _ = camera.position_m
     cam = (float(x0), float(y0), camera.cx_px, camera.cy_px, camera.fx_px, camera.fy_px)
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
     pose_t = (float(pose.x_m), float(pose.y_m), c, s)
-    h = float(height_m)
     amb = _prism_kernel(outline, hz, h, cam, pose_t, win, depth_img, PRISM_NEAR_EDGE_M)
     if len(amb):
         inside = shapely.contains_xy(shapely.Polygon(outline), amb[:, 2], amb[:, 3])
         for (v, u, tx, ty, bx, by), on_top in zip(amb, inside, strict=True):
             depth_img[int(v), int(u)] = _ray_depth(tx, ty, bx, by, on_top, outline, hz, h)
-    return DepthImage(depth_img, camera)
 
 
 def render_prism_depth_numpy(

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -166,6 +166,19 @@ class CameraModel:
     def pixel_size_m(self, depth_m: float) -> float:
         """Edge length of one pixel on a plane at this depth."""
         return depth_m / self.fx_px
+
+    def crop(self, u0: int, v0: int, width_px: int, height_px: int) -> CameraModel:
+        """The camera model of the window of this image whose top-left pixel is (u0, v0):
+        the same camera (pose, focal lengths), the principal point moved by the offset, so
+        that pixel (u, v) of the window back-projects to the world point of pixel
+        (u0 + u, v0 + v)."""
+        return replace(
+            self,
+            width_px=width_px,
+            height_px=height_px,
+            cx_px=self.cx_px - u0,
+            cy_px=self.cy_px - v0,
+        )
 
 
 @dataclass(frozen=True)

@@ -171,11 +171,11 @@ class PoseTracker:
         def start(yaw: float) -> np.ndarray:
             return center_w - _rot(yaw) @ self.ref_center
 
-        fits = [self._icp(q, y, start(y)) for y in cands]
+        fits = [self._icp_fast(q, y, start(y), 40, 1e-7, 1e-8) for y in cands]
         best = min(f.rms_px for f in fits)
         if best > 1.0:  # poor fit from every seed: search the whole circle
             extra = [prev.yaw_rad + k * math.pi / 4 for k in range(1, 8)]
-            fits += [self._icp(q, y, start(y)) for y in extra]
+            fits += [self._icp_fast(q, y, start(y), 40, 1e-7, 1e-8) for y in extra]
             best = min(f.rms_px for f in fits)
         # fits within a few degrees of each other are one basin: keep its best. Distinct
         # basins that fit equally well are symmetric copies: take the smallest rotation.
