@@ -27,6 +27,7 @@ import numpy as np
 import shapely
 from numba import njit
 
+from comexp.backends.numba_kernels import DirectCall
 from comexp.backends.physics_settings import FrictionSettings  # with every backend's settings
 from comexp.experiment.contact import pusher_contact_height_m
 from comexp.method.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
@@ -535,6 +536,10 @@ def impulse_kernel(geo, fs, normal, dxw, dyw, xi_hat, yaw, dt, pushed):
     return imp
 
 
+# `FootprintFriction.impulse` is called from Python every engine step (pybullet)
+_impulse_call = DirectCall(impulse_kernel)
+
+
 class FootprintFriction:
     """The floor's friction on one object: area samples, Winkler pressure, the implicit solve.
 
@@ -602,10 +607,10 @@ class FootprintFriction:
         follows for the next step: c = -z F_f / (m g), with z the pusher's contact height
         while the pusher holds the object against the friction (it then balances F_f), the
         CoM's height while the object slides free (inertia balances F_f)."""
-        xi_hat = np.asarray(xi_hat, dtype=np.float64)
+        xi_hat = np.ascontiguousarray(xi_hat, dtype=np.float64)
         if self.inputs is not None:
             self.inputs.append((*(float(v) for v in xi_hat), float(yaw), bool(pushed)))
-        return impulse_kernel(
+        return _impulse_call(
             self.geo, self.fs, self.normal, self.dxw, self.dyw, xi_hat, float(yaw), float(dt),
             bool(pushed),
         )  # fmt: skip

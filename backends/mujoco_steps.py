@@ -28,7 +28,7 @@ from numba import njit, types
 
 from comexp.backends import floor_friction
 from comexp.backends.floor_friction import impulse_kernel
-from comexp.backends.kernel_cache import stamp_with_sources
+from comexp.backends.numba_kernels import stamp_with_sources
 
 
 def _libmujoco() -> str:

@@ -63,7 +63,7 @@ from comexp.backends.floor_friction import (
     offsets_kernel,
     set_cop_kernel,
 )
-from comexp.backends.kernel_cache import stamp_with_sources
+from comexp.backends.numba_kernels import DirectCall, stamp_with_sources
 from comexp.backends.physics_settings import PLANAR, SlowSteps
 from comexp.experiment.contact import point_polygon_distance
 from comexp.experiment.interface import Simulator
@@ -382,6 +382,7 @@ def _pitch_rate_world(pg, ms):
 
 # the steps above compile the friction kernels into their own machine code
 stamp_with_sources(globals(), floor_friction)
+_run_call = DirectCall(_run)  # every chunk of the protocol's steps, from Python
 
 
 class PlanarModel:
@@ -479,9 +480,10 @@ class PlanarModel:
         """Steps from the pusher at q0 to each target in turn (`_run`): whether it pushed, and
         how many steps the model took (fewer than targets where `slow` grouped them)."""
         fr, slow = self.fr, slow or SlowSteps(steps=1)
-        return _run(
+        return _run_call(
             fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw, self.geo, self.ms,
-            np.asarray(q0, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
+            np.ascontiguousarray(q0, dtype=np.float64),
+            np.ascontiguousarray(targets, dtype=np.float64),
             float(dt), float(mu_p), trace, int(slow.steps), float(slow.speed_m_s),
         )  # fmt: skip
 
