@@ -39,6 +39,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -511,6 +512,9 @@ def cprofile_lines(
 
     def name(key: tuple) -> str:
         path, line, func = key
+        compiled = re.fullmatch(r"<built-in method (comexp\.[\w.]+)>", func)
+        if path == "~" and compiled:  # a kernel called at its entry point (DirectCall)
+            return f"{compiled.group(1)} (compiled)"
         try:
             path = str(Path(path).resolve().relative_to(root))
         except ValueError:

@@ -22,6 +22,12 @@ per resolution the CPU time against the default's and the largest rotation chang
 at 4 cm/s: what the model's cheaper settings would buy and cost (docs/performance.md,
 "planar").
 
+`--passes` instead times one pass over the footprint's samples (rect_8x5, 400 samples, an
+anisotropic floor, a sliding and turning twist): the Newton pass (value, gradient, Hessian:
+`_objective_into`) and the line search's (value alone: `value_kernel`), in a compiled loop,
+in us per pass (docs/performance.md, "What a step costs"); with `--baseline DIR` the same
+passes of DIR's floor_friction.py too, in the same run.
+
 `--pushes N` runs N of the 54 pushes, spread over the list (tests/test_bench.py's smoke run).
 """
 
@@ -144,6 +150,58 @@ def resolutions(all_cases) -> None:
         )
 
 
+def passes(n_loop: int = 20000, baseline: Path | None = None) -> None:
+    """CPU time of one pass over the footprint's samples, Newton's and the line search's,
+    of this version's kernels and, given `baseline`, of that directory's."""
+    from comexp.backends import floor_friction
+
+    versions = [("", floor_friction)]
+    if baseline is not None:
+        load_baseline(baseline)
+        versions.append(("baseline ", sys.modules["planar_baseline_floor_friction"]))
+    for label, ff in versions:
+        _passes_of(ff, n_loop, label)
+
+
+def _passes_of(ff, n_loop: int, label: str) -> None:
+    from numba import njit
+
+    from comexp.method.scene import PusherSpec
+
+    od = load_objects(["rect_8x5"])["rect_8x5"]
+    spec = od.model(com_point(od, 0), izz_scale=1.0, mu_pusher=0.5)
+    fr = ff.FootprintFriction(spec, 0.1, 1.0, PusherSpec())
+    grad_pass, value_pass = ff._objective_into, ff.value_kernel
+
+    @njit
+    def loop_grad(n, xi, xi_hat, M, w, dx, dy, tau, g, H):  # noqa: N803 - the kernel's names
+        acc = 0.0
+        for _ in range(n):
+            xi[0] += 1e-12  # a new point each pass: nothing hoisted out of the loop
+            acc += grad_pass(xi, xi_hat, M, w, dx, dy, 0.1, 1.0, 1e-3, 1e-7, 0.0, tau, 0.0,
+                             True, g, H)  # fmt: skip
+        return acc
+
+    @njit
+    def loop_value(n, xi, xi_hat, M, w, dx, dy, tau):  # noqa: N803
+        acc = 0.0
+        for _ in range(n):
+            xi[0] += 1e-12
+            acc += value_pass(xi, xi_hat, M, w, dx, dy, 0.1, 1.0, 1e-3, 1e-7, 0.0, tau, 0.0, True)
+        return acc
+
+    xi = np.array([0.1, 0.02, 0.5])
+    args = (xi, xi * 1.01, fr.M, fr.normal, fr.dxw, fr.dyw, np.zeros(3))
+    ff.offsets_kernel(fr.geo, fr.fs, 0.3, fr.dxw, fr.dyw)
+    g, H = np.zeros(3), np.zeros((3, 3))
+    for name, run_loop, extra in (("Newton", loop_grad, (g, H)), ("line search", loop_value, ())):
+        run_loop(10, *args, *extra)  # compile
+        t0 = time.process_time()
+        run_loop(n_loop, *args, *extra)
+        us = (time.process_time() - t0) / n_loop * 1e6
+        print(f"{label}{name} pass over {len(fr.normal)} samples: {us:.2f} us")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--baseline", type=Path, help="directory with an older planar_sim.py")
@@ -151,7 +209,11 @@ def main() -> None:
     ap.add_argument("--self-noise", action="store_true", help="one version vs itself, nudged")
     ap.add_argument("--pushes", type=int, help="only this many of the pushes, spread out")
     ap.add_argument("--resolutions", action="store_true", help="coarser settings vs default")
+    ap.add_argument("--passes", action="store_true", help="CPU of one pass over the samples")
     args = ap.parse_args()
+    if args.passes:
+        passes(2000 if args.pushes else 20000, args.baseline)
+        return
     old_cls = load_baseline(args.baseline) if args.baseline else None
     all_cases = cases()
     if args.pushes:

@@ -139,7 +139,9 @@ def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
     )
     assert figure(r"CPU {n} ms/episode", out) > 0
     assert "episode.py:" in out and "(run_episode)" in out
-    step = re.search(r"\n\s+([\d.]+)%\s+[\d.]+\s+[\d.]+\s+backends/planar_sim.py:\d+\(_run\)", out)
+    step = re.search(
+        r"\n\s+([\d.]+)%\s+[\d.]+\s+[\d.]+\s+comexp\.backends\.planar_sim\._run \(compiled\)", out
+    )
     assert step and 0 < float(step.group(1)) < 100
 
 
@@ -171,6 +173,12 @@ def test_planar_speed_smoke(monkeypatch, capfd):
     )
     assert "| 400 | 1 | 5 | x1.00 | 0.000 | 0.000 | 0.0000 |" in out  # the default, itself
     assert figure(r"\| 100 \| 2 \| 5 \| x{n} \|", out) > 1.0  # coarser is cheaper
+    out = run_bench(
+        "planar_speed.py", "--pushes", "2", "--passes", monkeypatch=monkeypatch, capfd=capfd
+    )
+    assert figure(r"Newton pass over {n} samples", out) > 300
+    assert figure(r"Newton pass over \d+ samples: {n} us", out) > 0
+    assert figure(r"line search pass over \d+ samples: {n} us", out) > 0
 
 
 def test_tracking_smoke(monkeypatch, capfd):
