@@ -22,11 +22,12 @@ per resolution the CPU time against the default's and the largest rotation chang
 at 4 cm/s: what the model's cheaper settings would buy and cost (docs/performance.md,
 "planar").
 
-`--passes` instead times one pass over the footprint's samples (rect_8x5, 400 samples, an
+`--passes` instead times one pass over the footprint's samples (rect_8x5's 416, an
 anisotropic floor, a sliding and turning twist): the Newton pass (value, gradient, Hessian:
-`_objective_into`) and the line search's (value alone: `value_kernel`), in a compiled loop,
-in us per pass (docs/performance.md, "What a step costs"); with `--baseline DIR` the same
-passes of DIR's floor_friction.py too, in the same run.
+`_objective_into`) and the line search's (value alone: `value_kernel`), 20,000 passes in a
+compiled loop (2,000 with `--pushes`, the smoke run), in us per pass (docs/performance.md,
+"What a step costs"); with `--baseline DIR` the same passes of DIR's floor_friction.py too,
+in the same run.
 
 `--pushes N` runs N of the 54 pushes, spread over the list (tests/test_bench.py's smoke run).
 """
@@ -204,7 +205,7 @@ def _passes_of(ff, n_loop: int, label: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", type=Path, help="directory with an older planar_sim.py")
+    ap.add_argument("--baseline", type=Path, help="an older planar_sim.py + floor_friction.py")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per push (best kept)")
     ap.add_argument("--self-noise", action="store_true", help="one version vs itself, nudged")
     ap.add_argument("--pushes", type=int, help="only this many of the pushes, spread out")
