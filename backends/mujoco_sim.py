@@ -83,6 +83,7 @@ _UNSTABLE_WARNINGS = (
     mujoco.mjtWarning.mjWARN_CONTACTFULL,
     mujoco.mjtWarning.mjWARN_CNSTRFULL,
 )
+_UNSTABLE_WARNING_INDEX = np.array([int(w) for w in _UNSTABLE_WARNINGS])
 
 
 # What "MuJoCo out of the box" means in docs/physics_mujoco.md (before/after measurements).
@@ -404,7 +405,7 @@ def _geometry_key(scene: SceneSpec, contact: MujocoContactSettings) -> tuple:
 
 def _quat_to_rpy(q: np.ndarray) -> tuple[float, float, float]:
     """MuJoCo (w, x, y, z) quaternion -> roll, pitch, yaw (ZYX convention)."""
-    w, x, y, z = (float(v) for v in q)
+    w, x, y, z = q.tolist()
     roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
     pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
@@ -476,6 +477,7 @@ class MujocoSimulator(Simulator):
         self.data: mujoco.MjData | None = None
         self._scene: SceneSpec | None = None
         self._renderers: OrderedDict[tuple, _Renderer] = OrderedDict()
+        self._rot_buffer = np.empty(9)  # object_state's rotation matrix, filled in place
 
     # --- scene ---------------------------------------------------------------------------
     def build(self, scene: SceneSpec) -> None:
@@ -495,6 +497,7 @@ class MujocoSimulator(Simulator):
             # MjData's buffers as numpy views (fixed for its life): the compiled step loop
             # reads and writes them in place (backends/mujoco_steps.py)
             self._views = (d.qpos, d.qvel, d.xipos, d.xfrc_applied, d.sensordata)
+            self._warning_numbers = d.warning.number  # a view too: read at every check
         m, d = self.model, self.data
         fl = scene.floor
         self._fric = (
@@ -532,7 +535,7 @@ class MujocoSimulator(Simulator):
         q, v = self._obj_qadr, self._obj_vadr
         quat = d.qpos[q + 3 : q + 7]
         roll, pitch, yaw = _quat_to_rpy(quat)
-        rot = np.empty(9)
+        rot = self._rot_buffer
         mujoco.mju_quat2Mat(rot, quat)
         w_world = rot.reshape(3, 3) @ d.qvel[v + 3 : v + 6]  # free joint: angular vel is local
         return ObjectState(
@@ -564,8 +567,7 @@ class MujocoSimulator(Simulator):
         return np.array(self.data.qpos[self._px_qadr : self._px_qadr + 2])
 
     def _warning_count(self) -> int:
-        d = self.data
-        return sum(int(d.warning[w].number) for w in _UNSTABLE_WARNINGS)
+        return int(self._warning_numbers[_UNSTABLE_WARNING_INDEX].sum())
 
     # --- protocol primitives (comexp.simulator.Simulator.push) ------------------------------
     def _place_pusher(self, xy) -> None:
@@ -594,8 +596,9 @@ class MujocoSimulator(Simulator):
         sub = self.contact.substeps
         prev = self._pusher_xy()
         targets = np.asarray(targets, dtype=float)
-        vel = np.diff(np.vstack([prev[None, :], targets]), axis=0) / dt
-        starts = np.vstack([prev[None, :], targets[:-1]])
+        path = np.concatenate((prev[None, :], targets))  # where each step starts, then ends
+        vel = (path[1:] - path[:-1]) / dt
+        starts = path[:-1]
         touched = False
         min_cos = 1.0
         i = 0

@@ -513,20 +513,21 @@ def _object_state(com: np.ndarray, g, yaw: float, xi, tilt=(0.0, (1.0, 0.0), (0.
     its rate as a world angular velocity's x, y; roll and pitch (ZYX) tilt the body's z axis
     by that angle toward that direction."""
     c, s = math.cos(yaw), math.sin(yaw)
-    R = np.array([[c, -s], [s, c]])
-    r = R @ com  # origin -> CoM
-    o = g - r
-    v = xi[:2] - xi[2] * np.array([-r[1], r[0]])
+    # origin -> CoM by numpy's matmul, not in scalars: it rounds differently (fused multiply-
+    # adds), and the states the protocol checks must stay those of the results on record
+    r0, r1 = (np.array([[c, -s], [s, c]]) @ com).tolist()
+    g0, g1 = float(g[0]), float(g[1])
+    v0, v1, w = float(xi[0]), float(xi[1]), float(xi[2])
     theta, (nx, ny), (wx, wy) = tilt
     roll = math.asin(max(-1.0, min(1.0, -math.sin(theta) * ny)))
     pitch = math.atan2(math.sin(theta) * nx, math.cos(theta))
     return ObjectState(
-        position_m=(float(o[0]), float(o[1]), 0.0),
+        position_m=(g0 - r0, g1 - r1, 0.0),
         roll_rad=roll,
         pitch_rad=pitch,
-        yaw_rad=float(math.atan2(s, c)),
-        linear_velocity_m_s=(float(v[0]), float(v[1]), 0.0),
-        angular_velocity_rad_s=(float(wx), float(wy), float(xi[2])),
+        yaw_rad=math.atan2(s, c),
+        linear_velocity_m_s=(v0 - w * -r1, v1 - w * r0, 0.0),
+        angular_velocity_rad_s=(float(wx), float(wy), w),
     )
 
 
@@ -613,10 +614,18 @@ class PlanarSimulator(Simulator):
         poly = self.object_state().pose.to_world(m.outline)
         if point_polygon_distance(pts[0], poly) < m.radius:
             return 0
-        clear = _boundary_distance(pts[1:], poly) - m.radius
-        need = np.hypot(*np.diff(pts, axis=0).T) + _STILL_MARGIN_M
-        bad = np.flatnonzero(clear < need)
-        return int(bad[0]) if len(bad) else len(targets)
+        # in growing blocks (every point's test is its own): a push's approach is a fraction
+        # of its path, and the first block that ends it ends the search
+        i, block = 0, 128
+        while i < len(targets):
+            j = min(i + block, len(targets))
+            clear = _boundary_distance(pts[i + 1 : j + 1], poly) - m.radius
+            need = np.hypot(*np.diff(pts[i : j + 1], axis=0).T) + _STILL_MARGIN_M
+            bad = np.flatnonzero(clear < need)
+            if len(bad):
+                return i + int(bad[0])
+            i, block = j, 2 * block
+        return len(targets)
 
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
         m = self._require()

@@ -304,6 +304,32 @@ def test_steps_declared_still_that_move_the_object_are_an_error():
         _watched_push(Liar(), 0.4, 0.0)
 
 
+@pytest.mark.parametrize("gap_m", [0.0005, 0.003, 0.012, 0.03])
+def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m):
+    """`_steps_still` searches the path in growing blocks: its count is the first step whose
+    end lies closer to the outline than the step is long (plus the margin), however many
+    blocks the approach spans (a 3 cm approach at 4 cm/s is 750 steps: blocks of 128, 256,
+    512), and the whole path when no step comes near."""
+    from comexp.backends.planar_sim import _STILL_MARGIN_M, _boundary_distance
+
+    sim = PlanarSimulator()
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
+    sim.build(SceneSpec(FloorSpec(0.3, 0.3), obj))
+    radius = sim._scene.pusher.radius_m
+    start = np.array([-0.04 - radius - gap_m, 0.0])
+    sim._place_pusher(start)
+    step_m = 0.04 * sim.settings.timestep_s
+    for travel_m in (gap_m + 0.01, 0.5 * gap_m):
+        n = math.ceil(travel_m / step_m)
+        targets = start + np.minimum(step_m * np.arange(1, n + 1), travel_m)[:, None] * [1.0, 0.0]
+        pts = np.concatenate([start[None, :], targets])
+        poly = sim.object_state().pose.to_world(sim._outline_m())
+        clear = _boundary_distance(targets, poly) - radius
+        bad = np.flatnonzero(clear < np.hypot(*np.diff(pts, axis=0).T) + _STILL_MARGIN_M)
+        expected = int(bad[0]) if len(bad) else n
+        assert sim._steps_still(targets) == expected
+        assert (expected < n) == (travel_m > gap_m)  # reaches the object, or stops short
+
 def test_a_warm_started_tensionless_pressure_is_the_cold_one():
     """`pressure_kernel` starts the tensionless solve beyond the kern from the last one's
     coefficients: the same convex problem, so the same forces as a cold start, however far

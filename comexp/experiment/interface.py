@@ -276,11 +276,21 @@ class Simulator(ABC):
             raise RuntimeError("build() a scene first")
         return scene
 
+    def _scene_views(self) -> tuple[CameraModel, np.ndarray]:
+        """The built scene's camera model and outline array, made once per scene: every
+        push and every tracking frame asks for them (callers must not write the outline)."""
+        scene = self._scene_or_fail()
+        views = getattr(self, "_views_of_scene", None)
+        if views is None or views[0] is not scene:
+            outline = np.asarray(scene.obj.outline_m, dtype=float)
+            views = self._views_of_scene = (scene, scene.camera.model(), outline)
+        return views[1], views[2]
+
     def _camera_model(self) -> CameraModel:
-        return self._scene_or_fail().camera.model()
+        return self._scene_views()[0]
 
     def _outline_m(self) -> np.ndarray:
-        return np.asarray(self._scene_or_fail().obj.outline_m, dtype=float)
+        return self._scene_views()[1]
 
     def _pusher_radius_m(self) -> float:
         return self._scene_or_fail().pusher.radius_m
@@ -436,13 +446,12 @@ class _PushRun:
         dt, chunk = self.dt, self.chunk
         n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
         travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
-        k = self.skip_still(start + travelled[:, None] * direction)
+        path = start + travelled[:, None] * direction  # the pusher at the end of every step
+        k = self.skip_still(path)
         while k < n_move and self.status is None:
-            n = min(chunk, n_move - k)
-            travelled = np.minimum(cmd.speed_m_s * dt * np.arange(k + 1, k + n + 1), cmd.travel_m)
-            targets = start + travelled[:, None] * direction
+            targets = path[k : k + chunk]
             self.run(targets, driving=True)
-            k += n
+            k += len(targets)
             self.lag = max(self.lag, float(np.linalg.norm(self.sim._pusher_xy() - targets[-1])))
 
     def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:

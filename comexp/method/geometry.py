@@ -25,9 +25,12 @@ def signed_area(poly: Sequence[Sequence[float]]) -> float:
 
 
 def centroid(poly: Sequence[Sequence[float]]) -> np.ndarray:
+    """Area centroid (shoelace). Every tracking frame asks for it: the next vertices are one
+    shifted copy of the polygon (np.roll's values, without its per-call overhead)."""
     p = as_array(poly)
     x, y = p[:, 0], p[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    pn = np.concatenate((p[1:], p[:1]))
+    xn, yn = pn[:, 0], pn[:, 1]
     cross = x * yn - xn * y
     a = 0.5 * np.sum(cross)
     return np.array([np.sum((x + xn) * cross), np.sum((y + yn) * cross)]) / (6.0 * a)

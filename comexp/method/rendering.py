@@ -19,16 +19,19 @@ from comexp.method.scene import CameraModel, DepthImage, Pose2D
 def _prism_window(camera: CameraModel, world_outline: np.ndarray, height_m: float):
     """The pixel window (u0, u1, v0, v1) that can see the prism, or None: between the
     outline's projections at the floor and at the top face, one pixel of margin."""
-    uv = np.concatenate(
-        [
-            camera.world_to_pixel(world_outline[:, 0], world_outline[:, 1], 0.0),
-            camera.world_to_pixel(world_outline[:, 0], world_outline[:, 1], height_m),
-        ]
-    )
-    u0 = max(int(np.floor(uv[:, 0].min())) - 1, 0)
-    u1 = min(int(np.ceil(uv[:, 0].max())) + 1, camera.width_px - 1)
-    v0 = max(int(np.floor(uv[:, 1].min())) - 1, 0)
-    v1 = min(int(np.ceil(uv[:, 1].max())) + 1, camera.height_px - 1)
+    # `CameraModel.world_to_pixel` at both heights (the same arithmetic), reduced to its extremes
+    x0, y0, z0 = camera.position_m
+    dx, dy = world_outline[:, 0] - x0, world_outline[:, 1] - y0
+    us, vs = [], []
+    for depth in (z0 - 0.0, z0 - float(height_m)):
+        u = camera.cx_px + dx * camera.fx_px / depth
+        v = camera.cy_px - dy * camera.fy_px / depth
+        us += (u.min(), u.max())
+        vs += (v.min(), v.max())
+    u0 = max(math.floor(min(us)) - 1, 0)
+    u1 = min(math.ceil(max(us)) + 1, camera.width_px - 1)
+    v0 = max(math.floor(min(vs)) - 1, 0)
+    v1 = min(math.ceil(max(vs)) + 1, camera.height_px - 1)
     if u1 < u0 or v1 < v0:
         return None
     return u0, u1, v0, v1
