@@ -182,3 +182,19 @@ def test_box_object_inertia_is_the_textbook_value():
     b = box_object(0.08, 0.05, 0.03)
     assert b.izz_kg_m2 == pytest.approx(0.2 * (0.08**2 + 0.05**2) / 12)
     assert len(b.convex_parts_m) == 1
+
+
+def test_pose_maps_points_ccw_and_back_and_reads_only_x_and_y():
+    """`Pose2D.to_world` / `to_object` (filled in place since 5952407): a quarter turn takes
+    object +x to world +y (counter-clockwise positive), the two are inverse on any (..., 2)
+    batch, and points with more columns map by their x and y, as (..., 2) results."""
+    from comexp.method.scene import Pose2D
+
+    pose = Pose2D(0.1, -0.2, math.pi / 2)
+    assert np.allclose(pose.to_world(np.array([1.0, 0.0])), [0.1, 0.8])
+    pts = np.random.default_rng(3).normal(size=(4, 5, 2))
+    assert np.allclose(pose.to_object(pose.to_world(pts)), pts)
+    assert pose.to_world(pts).shape == (4, 5, 2)
+    wide = np.concatenate([pts, np.ones((4, 5, 1))], axis=-1)
+    assert np.array_equal(pose.to_world(wide), pose.to_world(pts))
+    assert np.array_equal(pose.to_object(wide), pose.to_object(pts))

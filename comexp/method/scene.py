@@ -211,7 +211,7 @@ class Pose2D:
         """Object-frame points (..., 2) -> world (..., 2)."""
         c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
         p = np.asarray(p, dtype=float)
-        out = np.empty(p.shape)  # filled in place (as `CameraModel.world_to_pixel`)
+        out = np.empty(p.shape[:-1] + (2,))  # filled in place (as `CameraModel.world_to_pixel`)
         out[..., 0] = self.x_m + c * p[..., 0] - s * p[..., 1]
         out[..., 1] = self.y_m + s * p[..., 0] + c * p[..., 1]
         return out
@@ -221,7 +221,7 @@ class Pose2D:
         c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
         p = np.asarray(p, dtype=float)
         dx, dy = p[..., 0] - self.x_m, p[..., 1] - self.y_m
-        out = np.empty(p.shape)
+        out = np.empty(p.shape[:-1] + (2,))
         out[..., 0] = c * dx + s * dy
         out[..., 1] = -s * dx + c * dy
         return out
