@@ -386,6 +386,29 @@ def samples_of(outline_m: np.ndarray, n_target: int) -> tuple[np.ndarray, np.nda
     return pts.copy(), area.copy()
 
 
+def hulls_of(
+    outline_m: np.ndarray, n_target: int, com_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The half planes (from the CoM) of the samples' convex hull and of the outline's (the
+    support polygon), kept per outline and CoM as `samples_of` keeps the samples: the
+    re-centring builds of an episode ask for the same ones. Copies: the caller owns them."""
+    key = tuple(tuple(float(v) for v in row) for row in np.asarray(outline_m, dtype=float))
+    com = (float(com_m[0]), float(com_m[1]))
+    return tuple(a.copy() for a in _cached_hulls(key, int(n_target), com))  # type: ignore[return-value]
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_hulls(outline: tuple, n_target: int, com: tuple) -> tuple[np.ndarray, ...]:
+    pts, _ = _cached_samples(outline, n_target)
+    c = np.array(com, dtype=float)
+    sample_n, sample_o = half_planes(
+        np.asarray(shapely.MultiPoint(pts).convex_hull.exterior.coords)[:-1] - c
+    )
+    hull = np.asarray(shapely.Polygon(np.array(outline, dtype=float)).convex_hull.exterior.coords)
+    hull_n, hull_o = half_planes(hull[:-1] - c)
+    return sample_n, sample_o, hull_n, hull_o
+
+
 def half_planes(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward unit normals n and offsets o of a convex polygon: inside is n . x <= o."""
     if shapely.Polygon(hull).exterior.is_ccw is False:
@@ -536,8 +559,18 @@ def impulse_kernel(geo, fs, normal, dxw, dyw, xi_hat, yaw, dt, pushed):
     return imp
 
 
-# `FootprintFriction.impulse` is called from Python every engine step (pybullet)
-_impulse_call = DirectCall(impulse_kernel)
+@njit(cache=True)
+def impulse_of_twist_kernel(geo, fs, normal, dxw, dyw, vx, vy, wz, yaw, dt, pushed):
+    """`impulse_kernel` of the twist (vx, vy, wz), its impulse as three floats: an engine
+    stepped from Python (pybullet) then builds and unpacks no array per step."""
+    xi_hat = np.empty(3)
+    xi_hat[0], xi_hat[1], xi_hat[2] = vx, vy, wz
+    imp = impulse_kernel(geo, fs, normal, dxw, dyw, xi_hat, yaw, dt, pushed)
+    return imp[0], imp[1], imp[2]
+
+
+# `FootprintFriction.impulse_of_twist` is called from Python every engine step (pybullet)
+_impulse_of_twist_call = DirectCall(impulse_of_twist_kernel)
 
 
 class FootprintFriction:
@@ -568,11 +601,10 @@ class FootprintFriction:
         pts, area = samples_of(outline, self.set.samples)
         self.d_obj = pts - self.com  # sample offsets from the CoM, object frame
         self.pressure = WinklerPressure(self.d_obj, area, self.m * GRAVITY_M_S2)
-        self.sample_hull_n, self.sample_hull_o = half_planes(
-            np.asarray(shapely.MultiPoint(pts).convex_hull.exterior.coords)[:-1] - self.com
+        # the samples' hull and the support polygon (the outline's hull), from the CoM
+        self.sample_hull_n, self.sample_hull_o, self.hull_n, self.hull_o = hulls_of(
+            outline, self.set.samples, self.com
         )
-        hull = np.asarray(shapely.Polygon(outline).convex_hull.exterior.coords)[:-1]
-        self.hull_n, self.hull_o = half_planes(hull - self.com)  # support polygon, from CoM
         s = self.set
         c = np.ascontiguousarray
         self.geo = FrictionGeometry(
@@ -607,10 +639,17 @@ class FootprintFriction:
         follows for the next step: c = -z F_f / (m g), with z the pusher's contact height
         while the pusher holds the object against the friction (it then balances F_f), the
         CoM's height while the object slides free (inertia balances F_f)."""
-        xi_hat = np.ascontiguousarray(xi_hat, dtype=np.float64)
+        vx, vy, wz = np.asarray(xi_hat, dtype=np.float64).tolist()
+        return np.array(self.impulse_of_twist(vx, vy, wz, float(yaw), float(dt), bool(pushed)))
+
+    def impulse_of_twist(
+        self, vx: float, vy: float, wz: float, yaw: float, dt: float, pushed: bool
+    ) -> tuple[float, float, float]:
+        """`impulse` of the twist (vx, vy, wz) given as floats, as a tuple: the per-step call
+        of a backend stepped from Python, which then builds and unpacks no array per step
+        (`impulse_kernel`'s bits, as MuJoCo's compiled loop computes them)."""
         if self.inputs is not None:
-            self.inputs.append((*(float(v) for v in xi_hat), float(yaw), bool(pushed)))
-        return _impulse_call(
-            self.geo, self.fs, self.normal, self.dxw, self.dyw, xi_hat, float(yaw), float(dt),
-            bool(pushed),
-        )  # fmt: skip
+            self.inputs.append((vx, vy, wz, yaw, pushed))
+        return _impulse_of_twist_call(
+            self.geo, self.fs, self.normal, self.dxw, self.dyw, vx, vy, wz, yaw, dt, pushed
+        )

@@ -472,7 +472,9 @@ class MujocoSimulator(Simulator):
         self._fric: FootprintFriction | None = None
         self._pushed = False
         self.contact = contact or DEFAULT_CONTACT
-        self._xml: str | None = None
+        self._xml: str | None = None  # the MJCF the model was compiled from
+        self._xml_key: tuple | None = None  # what `_scene_xml` was written of
+        self._scene_xml = ""
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._scene: SceneSpec | None = None
@@ -481,7 +483,14 @@ class MujocoSimulator(Simulator):
 
     # --- scene ---------------------------------------------------------------------------
     def build(self, scene: SceneSpec) -> None:
-        xml = scene_mjcf(scene, self.settings, self.contact, self.floor_friction)
+        # what the MJCF is made of (all frozen): not the pose, which is set below, so an
+        # episode's re-centring builds reuse its text without writing it again
+        key = (scene.floor, scene.obj, scene.pusher, scene.camera, self.settings, self.contact,
+               self.floor_friction)  # fmt: skip
+        if key != self._xml_key:
+            self._xml_key = key
+            self._scene_xml = scene_mjcf(scene, self.settings, self.contact, self.floor_friction)
+        xml = self._scene_xml
         if xml != self._xml:  # compiling is deterministic, so reuse == recompile bitwise
             self.model = mujoco.MjModel.from_xml_string(xml)
             self.data = mujoco.MjData(self.model)

@@ -65,7 +65,6 @@ from comexp.backends.floor_friction import (
 )
 from comexp.backends.numba_kernels import DirectCall, stamp_with_sources
 from comexp.backends.physics_settings import PLANAR, SlowSteps
-from comexp.experiment.contact import point_polygon_distance
 from comexp.experiment.interface import Simulator
 from comexp.method.rendering import render_prism_depth, render_prism_window_depth
 from comexp.method.scene import (
@@ -369,6 +368,25 @@ def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace, g
 
 
 @njit(cache=True)
+def _still_steps(q0x, q0y, targets, poly, radius, margin):
+    """`PlanarSimulator._steps_still`'s count: the pusher starting at q0 outside the polygon
+    by its radius, the leading targets each farther from the polygon's boundary (less the
+    radius) than the step to it is long plus `margin`. The count only decides which steps
+    the protocol advances without its checks; a step it leaves out is checked as usual."""
+    _, _, d, inside = _closest_on_polygon(q0x, q0y, poly)
+    if inside or d < radius:
+        return 0
+    px, py = q0x, q0y
+    for i in range(targets.shape[0]):
+        qx, qy = targets[i, 0], targets[i, 1]
+        _, _, d, _ = _closest_on_polygon(qx, qy, poly)
+        if d - radius < math.hypot(qx - px, qy - py) + margin:
+            return i
+        px, py = qx, qy
+    return targets.shape[0]
+
+
+@njit(cache=True)
 def _pitch_rate_world(pg, ms):
     """The pitch rate as an angular velocity (world x, y): about the edge, z x n."""
     if ms[PITCH_W] == 0.0 or ms[OVER] != 0.0:
@@ -497,16 +515,6 @@ _NO_TRACE = np.zeros((0, TRACE_COLS))
 _STILL_MARGIN_M = 1e-4
 
 
-def _boundary_distance(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Distance of each point (n x 2) from a polygon's boundary."""
-    a = poly[None, :, :]
-    ab = np.roll(poly, -1, axis=0)[None, :, :] - a
-    ap = pts[:, None, :] - a
-    t = np.clip(np.sum(ap * ab, axis=2) / np.sum(ab * ab, axis=2), 0.0, 1.0)
-    closest = a + t[:, :, None] * ab
-    return np.min(np.hypot(*(pts[:, None, :] - closest).transpose(2, 0, 1)), axis=1)
-
-
 def _object_state(com: np.ndarray, g, yaw: float, xi, tilt=(0.0, (1.0, 0.0), (0.0, 0.0))):
     """The interface's state of the object frame from the model's CoM state. `tilt` is the
     pitch (rad), the object-frame direction it tilts toward (the edge's outward normal) and
@@ -610,22 +618,10 @@ class PlanarSimulator(Simulator):
         m = self._require()
         if not m.flat or m.ms[XI_X] != 0.0 or m.ms[XI_Y] != 0.0 or m.ms[XI_W] != 0.0:
             return 0
-        pts = np.concatenate([self._q[None, :], np.asarray(targets, dtype=float)])
         poly = self.object_state().pose.to_world(m.outline)
-        if point_polygon_distance(pts[0], poly) < m.radius:
-            return 0
-        # in growing blocks (every point's test is its own): a push's approach is a fraction
-        # of its path, and the first block that ends it ends the search
-        i, block = 0, 128
-        while i < len(targets):
-            j = min(i + block, len(targets))
-            clear = _boundary_distance(pts[i + 1 : j + 1], poly) - m.radius
-            need = np.hypot(*np.diff(pts[i : j + 1], axis=0).T) + _STILL_MARGIN_M
-            bad = np.flatnonzero(clear < need)
-            if len(bad):
-                return i + int(bad[0])
-            i, block = j, 2 * block
-        return len(targets)
+        pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
+        q0x, q0y = float(self._q[0]), float(self._q[1])
+        return _still_steps(q0x, q0y, pts, poly, float(m.radius), _STILL_MARGIN_M)
 
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
         m = self._require()

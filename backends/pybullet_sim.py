@@ -80,6 +80,8 @@ def _import_pybullet_quietly():
 
 
 pb = _import_pybullet_quietly()
+_WORLD = pb.WORLD_FRAME
+_ZERO3 = (0.0, 0.0, 0.0)  # (pybullet reads any sequence; this one is never written)
 
 
 def _fmt(x: float) -> str:
@@ -410,43 +412,39 @@ class PybulletSimulator(Simulator):
         a vertical slip that its friction fought: it carried up to 39% of a low box's weight
         (tests/test_pybullet_backend.py).
         """
-        c = self._cid
-        pos, quat = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=c)
-        if pos[2] != self._pusher_z:
-            pos = (pos[0], pos[1], self._pusher_z)
-            pb.resetBasePositionAndOrientation(self._pusher, pos, quat, physicsClientId=c)
+        c, pusher, z = self._cid, self._pusher, self._pusher_z
+        pos, quat = pb.getBasePositionAndOrientation(pusher, physicsClientId=c)
+        if pos[2] != z:
+            pos = (pos[0], pos[1], z)
+            pb.resetBasePositionAndOrientation(pusher, pos, quat, physicsClientId=c)
         inv_dt = 1.0 / self.settings.timestep_s
         tx, ty = self._pusher_target
         vel = [(tx - pos[0]) * inv_dt, (ty - pos[1]) * inv_dt, 0.0]
-        pb.resetBaseVelocity(self._pusher, vel, [0.0, 0.0, 0.0], physicsClientId=c)
+        pb.resetBaseVelocity(pusher, vel, _ZERO3, physicsClientId=c)
         if self._fric is not None:
             self._apply_floor_friction()
-        pb.stepSimulation(physicsClientId=c)
-        if self._fric is not None:
-            self._pushed = bool(pb.getContactPoints(self._pusher, self._object, physicsClientId=c))
+            pb.stepSimulation(physicsClientId=c)
+            self._pushed = bool(pb.getContactPoints(pusher, self._object, physicsClientId=c))
+        else:
+            pb.stepSimulation(physicsClientId=c)
 
     def _apply_floor_friction(self) -> None:
         """`floor_friction=model`: the floor's friction for this step from the footprint model
         (backends/floor_friction.py), applied at the floor under the CoM, with Bullet's own
         object-floor friction off; Bullet keeps the normal contact, the pusher and the
         integration."""
-        c = self._cid
-        com, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
-        v, w = pb.getBaseVelocity(self._object, physicsClientId=c)
+        c, obj = self._cid, self._object
+        com, quat = pb.getBasePositionAndOrientation(obj, physicsClientId=c)
+        v, w = pb.getBaseVelocity(obj, physicsClientId=c)
         yaw = pb.getEulerFromQuaternion(quat)[2]
         dt = self.settings.timestep_s
-        ix, iy, iz = self._fric.impulse(
-            np.array([v[0], v[1], w[2]]), yaw, dt, self._pushed
-        ).tolist()
+        ix, iy, iz = self._fric.impulse_of_twist(v[0], v[1], w[2], yaw, dt, self._pushed)
         if ix == 0.0 and iy == 0.0 and iz == 0.0:
             return
         pb.applyExternalForce(
-            self._object, -1, [ix / dt, iy / dt, 0.0], [com[0], com[1], 0.0], pb.WORLD_FRAME,
-            physicsClientId=c,
-        )  # fmt: skip
-        pb.applyExternalTorque(
-            self._object, -1, [0.0, 0.0, iz / dt], pb.WORLD_FRAME, physicsClientId=c
+            obj, -1, [ix / dt, iy / dt, 0.0], [com[0], com[1], 0.0], _WORLD, physicsClientId=c
         )
+        pb.applyExternalTorque(obj, -1, [0.0, 0.0, iz / dt], _WORLD, physicsClientId=c)
 
     def _teleport_pusher(self, xy: Sequence[float]) -> None:
         c = self._cid
@@ -575,18 +573,19 @@ class PybulletSimulator(Simulator):
         c = self._cid
         touched = False
         self._orient_pusher(targets[-1])
-        for tx, ty in targets:
-            self._command_pusher((tx, ty))
+        model, trace = self._fric is not None, self.trace
+        for target in np.asarray(targets, dtype=float).tolist():
+            self._pusher_target = target  # (_command_pusher's, without a call per step)
             self._step_once()
             if not touched:
                 # with the friction model, _step_once has just asked Bullet the same question
                 touched = (
                     self._pushed
-                    if self._fric is not None
+                    if model
                     else bool(pb.getContactPoints(self._pusher, self._object, physicsClientId=c))
                 )
-            if self.trace is not None:
-                self.trace.append(self.object_state())
+            if trace is not None:
+                trace.append(self.object_state())
         # the tilt alone (the protocol reads the whole state itself right after)
         _, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
         roll, pitch, _ = pb.getEulerFromQuaternion(quat)

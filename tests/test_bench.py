@@ -153,10 +153,13 @@ def test_step_cost_smoke(monkeypatch, capfd):
         capfd=capfd,
     )
     step = figure(r"step inside a push\s+{n} us", out)
-    parts = [figure(rf"{k}\s+{{n}} us", out) for k in ("engine raw step", "friction kernel")]
+    parts = [figure(rf"{k}\s+{{n}} us", out) for k in ("engine's step", "friction kernel")]
     assert step > 0 and all(p > 0 for p in parts)
     assert figure(r"our Python\s+{n} us", out) == pytest.approx(step - sum(parts), abs=0.2)
-    assert figure(r"episode {n}x the floor", out) > 1
+    assert figure(r"resting scene: {n} us", out) > 0
+    engine_floor = figure(r"\(the engine's steps in pushes \+ renders\): episode {n}x", out)
+    model_floor = figure(r"\(\+ the friction kernel\): episode {n}x", out)
+    assert engine_floor > model_floor > 1
 
 
 def test_planar_speed_smoke(monkeypatch, capfd):

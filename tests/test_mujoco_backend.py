@@ -168,6 +168,27 @@ def test_renderer_is_reused_across_object_changes(sim):
     assert np.array_equal(first, again)
 
 
+def test_a_rebuild_at_another_pose_reuses_the_model_and_a_new_object_does_not(sim):
+    """An episode's re-centring builds keep the scene's MJCF (the pose is not in it) and so
+    the compiled model; the MJCF kept is the one a fresh writing gives, and another object
+    (a CoM moved) compiles a new model. Each build puts the object at its pose."""
+    from dataclasses import replace
+
+    scene = SceneSpec(FloorSpec(0.5, 0.5), box_object(0.08, 0.05, 0.03, com_m=(0.01, 0.0)))
+    sim.build(scene)
+    model = sim.model
+    moved = replace(scene, initial_pose=Pose2D(0.02, -0.01, 0.4))
+    sim.build(moved)
+    assert sim.model is model
+    assert sim._xml == mujoco_sim.scene_mjcf(moved, sim.settings, sim.contact, sim.floor_friction)
+    x, y, _ = sim.object_state().position_m
+    assert (x, y, sim.object_state().yaw_rad) == pytest.approx((0.02, -0.01, 0.4), abs=1e-6)
+    other = replace(scene, obj=box_object(0.08, 0.05, 0.03, com_m=(-0.01, 0.0)))
+    sim.build(other)
+    assert sim.model is not model
+    assert sim._xml == mujoco_sim.scene_mjcf(other, sim.settings, sim.contact, sim.floor_friction)
+
+
 def _box_scene(mu: float) -> SceneSpec:
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.5)
     return SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, 0.3))

@@ -17,7 +17,7 @@ from comexp.backends.planar_sim import PlanarSimulator, SlowSteps
 from comexp.experiment.contact import pusher_contact_height_m
 from comexp.experiment.simulator import PushStatus, contact_push
 from comexp.method.geometry import box_object, prism_object
-from comexp.method.scene import GRAVITY_M_S2, FloorSpec, PusherSpec, SceneSpec, SimSettings
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PusherSpec, SceneSpec, SimSettings
 
 RECT = np.array([(-0.04, -0.025), (0.04, -0.025), (0.04, 0.025), (-0.04, 0.025)])
 
@@ -249,6 +249,25 @@ def test_engine_friction_impulse_holds_and_then_slides():
     assert fr.cop[0] == pytest.approx(0.5 * 0.015 / 2, rel=1e-6)
 
 
+def test_impulse_of_a_twist_in_floats_is_the_kernels_to_the_bit():
+    """`impulse_of_twist` (pybullet's per-step call, floats in and out) gives the bits of
+    `impulse_kernel` on the twist's array, the kernel MuJoCo's compiled loop calls, and leaves
+    the same pressure for the next step: at rest, sliding, spinning, pushed."""
+    from comexp.backends.floor_friction import FootprintFriction, impulse_kernel
+    from comexp.method.scene import PusherSpec
+
+    obj = box_object(0.08, 0.05, 0.015)
+    a, b = (FootprintFriction(obj, 0.6, 0.3, PusherSpec()) for _ in range(2))
+    twists = [(1e-4, 0.0, 1e-3, 0.3, False), (0.3, -0.05, 2.0, 0.7, False),
+              (0.2, 0.1, -1.5, -2.0, True), (0.0, 0.0, 0.0, 1.0, True)]  # fmt: skip
+    for vx, vy, wz, yaw, pushed in twists:
+        xi = np.array([vx, vy, wz])
+        want = impulse_kernel(a.geo, a.fs, a.normal, a.dxw, a.dyw, xi, yaw, 1e-3, pushed)
+        assert b.impulse_of_twist(vx, vy, wz, yaw, 1e-3, pushed) == tuple(want.tolist())
+        assert np.array_equal(a.fs, b.fs, equal_nan=True)
+        assert np.array_equal(a.normal, b.normal)
+
+
 def test_kept_samples_are_the_fresh_ones_and_the_callers_own():
     """A rebuild reuses the footprint's samples (`samples_of`): the same numbers as a fresh
     clipping, and a copy each time, so that nothing a caller does reaches the next build."""
@@ -304,31 +323,48 @@ def test_steps_declared_still_that_move_the_object_are_an_error():
         _watched_push(Liar(), 0.4, 0.0)
 
 
+def _boundary_distance(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Distance of each point (n x 2) from a polygon's boundary (numpy, all at once)."""
+    a = poly[None, :, :]
+    ab = np.roll(poly, -1, axis=0)[None, :, :] - a
+    ap = pts[:, None, :] - a
+    t = np.clip(np.sum(ap * ab, axis=2) / np.sum(ab * ab, axis=2), 0.0, 1.0)
+    closest = a + t[:, :, None] * ab
+    return np.min(np.hypot(*(pts[:, None, :] - closest).transpose(2, 0, 1)), axis=1)
+
+
 @pytest.mark.parametrize("gap_m", [0.0005, 0.003, 0.012, 0.03])
-def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m):
-    """`_steps_still` searches the path in growing blocks: its count is the first step whose
-    end lies closer to the outline than the step is long (plus the margin), however many
-    blocks the approach spans (a 3 cm approach at 4 cm/s is 750 steps: blocks of 128, 256,
-    512), and the whole path when no step comes near."""
-    from comexp.backends.planar_sim import _STILL_MARGIN_M, _boundary_distance
+@pytest.mark.parametrize("yaw", [0.0, 0.7])
+def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m, yaw):
+    """`_steps_still` (compiled, step by step) counts to the first step whose end lies
+    closer to the outline than the step is long (plus the margin), as the whole path's
+    distances computed at once say, and the whole path when no step comes near; none from a
+    start within reach."""
+    from comexp.backends.planar_sim import _STILL_MARGIN_M
 
     sim = PlanarSimulator()
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
-    sim.build(SceneSpec(FloorSpec(0.3, 0.3), obj))
+    sim.build(SceneSpec(FloorSpec(0.3, 0.3), obj, initial_pose=Pose2D(0.0, 0.0, yaw)))
     radius = sim._scene.pusher.radius_m
-    start = np.array([-0.04 - radius - gap_m, 0.0])
+    poly = sim.object_state().pose.to_world(sim._outline_m())
+    reach = float(np.max(np.hypot(*poly.T)))  # a start beyond the outline along -x
+    start = np.array([-reach - radius - gap_m, 0.0])
     sim._place_pusher(start)
     step_m = 0.04 * sim.settings.timestep_s
-    for travel_m in (gap_m + 0.01, 0.5 * gap_m):
+    gap = _boundary_distance(start[None, :], poly)[0] - radius
+    for travel_m in (gap + 0.01, 0.5 * gap):
         n = math.ceil(travel_m / step_m)
         targets = start + np.minimum(step_m * np.arange(1, n + 1), travel_m)[:, None] * [1.0, 0.0]
         pts = np.concatenate([start[None, :], targets])
-        poly = sim.object_state().pose.to_world(sim._outline_m())
         clear = _boundary_distance(targets, poly) - radius
         bad = np.flatnonzero(clear < np.hypot(*np.diff(pts, axis=0).T) + _STILL_MARGIN_M)
         expected = int(bad[0]) if len(bad) else n
         assert sim._steps_still(targets) == expected
-        assert (expected < n) == (travel_m > gap_m)  # reaches the object, or stops short
+        assert (expected < n) == (travel_m > gap)  # reaches the object, or stops short
+    inside = np.array(sim.object_state().position_m[:2])  # deep inside: far from the edges
+    assert _boundary_distance(inside[None, :], poly)[0] > 3 * radius
+    sim._place_pusher(inside)
+    assert sim._steps_still(inside + step_m * np.arange(1, 10)[:, None] * [1.0, 0.0]) == 0
 
 
 def test_a_warm_started_tensionless_pressure_is_the_cold_one():
