@@ -13,8 +13,9 @@
   object the friction can hold is exactly at rest: no creep, no chatter.
 
 `backend=planar` solves this together with its pusher contact (backends/planar_sim.py); the
-engines, with `floor_friction=model`, apply `FootprintFriction.impulse` as an external force
-each step, their own object-floor friction off (docs/physics.md).
+engines, with `floor_friction=model`, apply `impulse_kernel`'s impulse as an external force
+each step (MuJoCo inside its compiled loop, pybullet through
+`FootprintFriction.impulse_of_twist`), their own object-floor friction off (docs/physics.md).
 """
 
 from __future__ import annotations

@@ -453,9 +453,6 @@ class PybulletSimulator(Simulator):
         pb.resetBaseVelocity(self._pusher, [0, 0, 0], [0, 0, 0], physicsClientId=c)
         self._pusher_target = (pos[0], pos[1])
 
-    def _command_pusher(self, xy: Sequence[float]) -> None:
-        self._pusher_target = (float(xy[0]), float(xy[1]))
-
     def _orient_pusher(self, toward_xy: Sequence[float]) -> None:
         """Turn the pusher's axle (body x) horizontal and across its coming travel, when it is
         not already: rolling about the axle then frees the contact's vertical slip only."""
@@ -575,7 +572,7 @@ class PybulletSimulator(Simulator):
         self._orient_pusher(targets[-1])
         model, trace = self._fric is not None, self.trace
         for target in np.asarray(targets, dtype=float).tolist():
-            self._pusher_target = target  # (_command_pusher's, without a call per step)
+            self._pusher_target = target  # where `_step_once` drives the pusher
             self._step_once()
             if not touched:
                 # with the friction model, _step_once has just asked Bullet the same question
