@@ -378,24 +378,32 @@ def _cached_samples(outline: tuple, n_target: int) -> tuple[np.ndarray, np.ndarr
     return footprint_samples(np.array(outline, dtype=float), n_target)
 
 
-def samples_of(outline_m: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+def outline_key(outline_m: np.ndarray) -> tuple:
+    """An outline as the hashable key of the per-outline caches below (its vertices' floats)."""
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(outline_m, dtype=float))
+
+
+def samples_of(
+    outline_m: np.ndarray, n_target: int, key: tuple | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """`footprint_samples`, kept per outline: an episode rebuilds its scene for every push
-    (re-centring), and the polygon clipping was most of a planar build. Copies: the caller
-    owns them."""
-    key = tuple(tuple(float(v) for v in row) for row in np.asarray(outline_m, dtype=float))
-    pts, area = _cached_samples(key, int(n_target))
+    (re-centring), and the polygon clipping was most of a planar build. `key`: the outline's
+    `outline_key`, when the caller has it already. Copies: the caller owns them."""
+    pts, area = _cached_samples(outline_key(outline_m) if key is None else key, int(n_target))
     return pts.copy(), area.copy()
 
 
 def hulls_of(
-    outline_m: np.ndarray, n_target: int, com_m: np.ndarray
+    outline_m: np.ndarray, n_target: int, com_m: np.ndarray, key: tuple | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The half planes (from the CoM) of the samples' convex hull and of the outline's (the
     support polygon), kept per outline and CoM as `samples_of` keeps the samples: the
-    re-centring builds of an episode ask for the same ones. Copies: the caller owns them."""
-    key = tuple(tuple(float(v) for v in row) for row in np.asarray(outline_m, dtype=float))
+    re-centring builds of an episode ask for the same ones. `key` as for `samples_of`.
+    Copies: the caller owns them."""
     com = (float(com_m[0]), float(com_m[1]))
-    return tuple(a.copy() for a in _cached_hulls(key, int(n_target), com))  # type: ignore[return-value]
+    key = outline_key(outline_m) if key is None else key
+    hulls = _cached_hulls(key, int(n_target), com)
+    return tuple(a.copy() for a in hulls)  # type: ignore[return-value]
 
 
 @functools.lru_cache(maxsize=64)
@@ -599,12 +607,13 @@ class FootprintFriction:
         outline = np.asarray(obj.outline_m, dtype=float)
         self.h_com = obj.height_m / 2.0
         self.z_push = pusher_contact_height_m(pusher, obj.height_m)
-        pts, area = samples_of(outline, self.set.samples)
+        key = outline_key(outline)  # the per-outline caches' key, made once
+        pts, area = samples_of(outline, self.set.samples, key)
         self.d_obj = pts - self.com  # sample offsets from the CoM, object frame
         self.pressure = WinklerPressure(self.d_obj, area, self.m * GRAVITY_M_S2)
         # the samples' hull and the support polygon (the outline's hull), from the CoM
         self.sample_hull_n, self.sample_hull_o, self.hull_n, self.hull_o = hulls_of(
-            outline, self.set.samples, self.com
+            outline, self.set.samples, self.com, key
         )
         s = self.set
         c = np.ascontiguousarray

@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/step_cost.py --backend pybullet [--episodes 16] [--speed 40]
     .venv/bin/python bench/step_cost.py --backend mujoco --speed 4 --floor aniso
+    .venv/bin/python bench/step_cost.py --backend planar --speed 4 --floor aniso
 
 Issue 16 asks for an episode within 1.5x of the engine's own floor: its steps plus its
 renders, measured in the same run (issue 24: with the model's physics as well). This script
@@ -9,16 +10,19 @@ measures, on one in-process worker and the job's own episodes (`episode_profile.
 slice, vision and the default camera):
 
 - **in-push cost per step**: `sim.push` time, minus the tracking frames rendered inside
-  it, over `PushOutcome.steps`;
+  it and the tracker's work on them (its `on_frame` / `frame_wanted` callbacks: perception,
+  counted with the rest outside physics), over `PushOutcome.steps`;
 - **the engine's step in pushes**: the engine's own step call alone, no Python of ours
   around it, in the states the pushes drive it through (`EngineStepsInPushes`: pybullet's
   `stepSimulation` calls timed one by one; MuJoCo's chunks replayed from their saved states
-  as `mj_step(m, d, n)`), in a third identical pass. Beside it, the same call on each
+  as `mj_step(m, d, n)`; planar's compiled chunks, `_run`, timed one by one: its friction
+  solve is inside its step), in a second run of each episode right after its timed one
+  (builds are full resets, so it takes the same steps). Beside it, the same call on each
   episode's built scene at rest (object resting, pusher parked): a pusher contact and a
   sliding object make a step dearer, so the resting step alone understates the floor;
-- **the friction model's kernel**: every `FootprintFriction` input of the same episodes
-  recorded in a second, identical pass (builds are full resets, so the pass repeats the
-  first) and replayed through the compiled kernel alone, called as the engines call it;
+- **the friction model's kernel**: every `FootprintFriction` input of that second run
+  recorded and replayed through the compiled kernel alone, called as the engines call it
+  (planar: none apart from its step);
 - the rest of the step, **our Python around the engine** (pusher command, state reads, force
   application, contact query, the protocol's checks): in-push minus engine minus kernel.
 
@@ -59,17 +63,21 @@ from comexp.experiment.simulator import Simulator, make_simulator
 
 
 class Timers:
-    """CPU time and calls of the wrapped methods, and the steps of the pushes."""
+    """CPU time and calls of the wrapped methods, and the steps of the pushes. A push's
+    `on_frame` and `frame_wanted` callbacks (the tracker following the push: masking,
+    boundary, ICP) are timed as "track": they run inside the push but are perception."""
 
     def __init__(self) -> None:
-        self.s: dict[str, float] = {"push": 0.0, "render": 0.0, "frame": 0.0}
-        self.n: dict[str, int] = {"push": 0, "render": 0, "frame": 0}
+        keys = ("push", "render", "frame", "track")
+        self.s: dict[str, float] = dict.fromkeys(keys, 0.0)
+        self.n: dict[str, int] = dict.fromkeys(keys, 0)
         self.steps = 0
+        self.active = True  # off: the wrapped methods run untimed
 
-    def wrap(self, sim: Simulator, name: str, key: str) -> None:
-        fn = getattr(sim, name)
-
+    def _timed(self, fn: Any, key: str) -> Any:
         def timed(*a: Any, **k: Any) -> Any:
+            if not self.active:
+                return fn(*a, **k)
             t0 = time.process_time()
             out = fn(*a, **k)
             self.s[key] += time.process_time() - t0
@@ -78,7 +86,20 @@ class Timers:
                 self.steps += out.steps
             return out
 
-        setattr(sim, name, timed)
+        return timed
+
+    def wrap(self, sim: Simulator, name: str, key: str) -> None:
+        fn = self._timed(getattr(sim, name), key)
+        if key == "push":
+            inner = fn
+
+            def fn(*a: Any, **k: Any) -> Any:
+                for cb in ("on_frame", "frame_wanted"):
+                    if self.active and k.get(cb) is not None:
+                        k[cb] = self._timed(k[cb], "track")
+                return inner(*a, **k)
+
+        setattr(sim, name, fn)
 
 
 def raw_step_s(sim: Simulator, spec: EpisodeSpec, n: int) -> float:
@@ -103,6 +124,17 @@ def raw_step_s(sim: Simulator, spec: EpisodeSpec, n: int) -> float:
         for _ in range(3):
             t0 = time.process_time()
             mujoco.mj_step(m, d, n)
+            best = min(best, time.process_time() - t0)
+    elif sim.name == "planar":
+        from comexp.backends import planar_sim
+
+        m = sim._require()  # type: ignore[attr-defined]
+        q = sim._pusher_xy()
+        targets = np.repeat(q[None, :], n, axis=0)
+        dt, mu_p = sim.settings.timestep_s, sim._scene.obj.mu_pusher  # type: ignore[attr-defined]
+        for _ in range(3):
+            t0 = time.process_time()
+            m.run(q, targets, dt, mu_p, planar_sim._NO_TRACE, sim.slow_steps)  # type: ignore[attr-defined]
             best = min(best, time.process_time() - t0)
     else:
         raise SystemExit(f"no raw engine step for backend {sim.name}")
@@ -170,38 +202,50 @@ class EngineStepsInPushes:
         self._snaps: list[tuple[np.ndarray, int]] = []
         self._in_push = False
 
+    def _timed_in_pushes(self, step: Any, steps_of: Any) -> Any:
+        """`step` timed call by call on the thread's CPU clock (its own cost, calibrated,
+        taken off) while a push is under way; `steps_of(args)`: the steps one call runs."""
+        clock = time.thread_time
+        t0 = clock()
+        for _ in range(1000):
+            clock()
+        own = (clock() - t0) / 1001  # one clock read
+
+        def timed(*a: Any, **k: Any) -> Any:
+            if not self._in_push:
+                return step(*a, **k)
+            t0 = clock()
+            out = step(*a, **k)
+            self.s += clock() - t0 - own
+            self.steps += steps_of(a)
+            return out
+
+        push = self.sim.push
+        self._own_push = self.sim.__dict__.get("push")  # a wrapper already set, or None
+
+        def pushing(*a: Any, **k: Any) -> Any:
+            self._in_push = True
+            try:
+                return push(*a, **k)
+            finally:
+                self._in_push = False
+
+        self.sim.push = pushing  # type: ignore[method-assign]
+        return timed
+
     def __enter__(self) -> EngineStepsInPushes:
         sim = self.sim
         if sim.name == "pybullet":
             import pybullet as pb
 
             self._pb, self._step = pb, pb.stepSimulation
-            clock = time.thread_time
-            t0 = clock()
-            for _ in range(1000):
-                clock()
-            own = (clock() - t0) / 1001  # one clock read
+            pb.stepSimulation = self._timed_in_pushes(self._step, lambda a: 1)
+        elif sim.name == "planar":
+            from comexp.backends import planar_sim
 
-            def timed(*a: Any, **k: Any) -> Any:
-                if not self._in_push:
-                    return self._step(*a, **k)
-                t0 = clock()
-                out = self._step(*a, **k)
-                self.s += clock() - t0 - own
-                self.steps += 1
-                return out
-
-            pb.stepSimulation = timed
-            push = sim.push
-
-            def pushing(*a: Any, **k: Any) -> Any:
-                self._in_push = True
-                try:
-                    return push(*a, **k)
-                finally:
-                    self._in_push = False
-
-            sim.push = pushing  # type: ignore[method-assign]
+            # the protocol's steps of a chunk (its model takes fewer where `SlowSteps` groups)
+            self._planar, self._step = planar_sim, planar_sim._run_call
+            planar_sim._run_call = self._timed_in_pushes(self._step, lambda a: len(a[8]))
         elif sim.name == "mujoco":
             import mujoco
 
@@ -234,10 +278,19 @@ class EngineStepsInPushes:
             self.steps += n
         self._snaps.clear()
 
+    def _restore_push(self) -> None:
+        if self._own_push is None:
+            del self.sim.push  # back to the class's method
+        else:
+            self.sim.push = self._own_push  # type: ignore[method-assign]
+
     def __exit__(self, *exc: object) -> None:
         if self.sim.name == "pybullet":
             self._pb.stepSimulation = self._step
-            del self.sim.push  # back to the class's method
+            self._restore_push()
+        elif self.sim.name == "planar":
+            self._planar._run_call = self._step
+            self._restore_push()
         elif self.sim.name == "mujoco":
             del self.sim._friction_steps  # back to the class's method
 
@@ -258,41 +311,49 @@ def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[
         t.wrap(sim, "render_depth", "render")
         t.wrap(sim, "render_tracking_depth", "frame")
         walls = []
+        kernel_s, kernel_n = 0.0, 0
+        engine_s, engine_steps = 0.0, 0
+        # Each episode timed, then at once run again (builds are full resets: the same
+        # steps) with its friction inputs recorded and its engine steps timed, and both
+        # replayed: the episode and its floor seconds apart, not passes minutes apart on a
+        # host whose speed drifts.
         for s in specs:
+            t.active = True
             t0 = time.process_time()
             run_episode(s, sim)
             walls.append(time.process_time() - t0)
-        for name in ("push", "render_depth", "render_tracking_depth"):
-            delattr(sim, name)  # back to the class's methods
-        with ImpulseRecorder() as rec:
-            for s in specs:
-                run_episode(s, sim)
-        kernel_s, kernel_n = rec.replay_s(sim.settings.timestep_s)
-        with EngineStepsInPushes(sim) as engine:
-            for s in specs:
+            t.active = False
+            with ImpulseRecorder() as rec, EngineStepsInPushes(sim) as engine:
                 run_episode(s, sim)
                 engine.replay()
+            ks, kn = rec.replay_s(sim.settings.timestep_s)
+            kernel_s, kernel_n = kernel_s + ks, kernel_n + kn
+            engine_s, engine_steps = engine_s + engine.s, engine_steps + engine.steps
+        for name in ("push", "render_depth", "render_tracking_depth"):
+            delattr(sim, name)  # back to the class's methods
         raws = [raw_step_s(sim, s, raw_n) for s in strided(specs, min(4, len(specs)))]
     finally:
         sim.close()
     ne = len(specs)
-    physics_s = t.s["push"] - t.s["frame"]
+    physics_s = t.s["push"] - t.s["frame"] - t.s["track"]
     out.update(
         episode_ms=1e3 * sum(walls) / ne,
         median_ms=1e3 * statistics.median(walls),
         steps_per_ep=t.steps / ne,
         step_us=1e6 * physics_s / t.steps,
         raw_us=1e6 * statistics.median(raws),
-        engine_us=1e6 * engine.s / max(engine.steps, 1),
+        engine_us=1e6 * engine_s / max(engine_steps, 1),
         kernel_us=1e6 * kernel_s / max(t.steps, 1),
         kernel_steps=kernel_n,
         render_ms=1e3 * (t.s["render"] + t.s["frame"]) / ne,
+        track_ms=1e3 * t.s["track"] / ne,
         renders_per_ep=t.n["render"] / ne,
         frames_per_ep=t.n["frame"] / ne,
     )
     # the engine's step as the pushes drive it; the one on a resting scene beside it
     out["python_us"] = out["step_us"] - out["engine_us"] - out["kernel_us"]
     out["physics_ms"] = 1e3 * physics_s / ne
+    # perception (the tracking inside pushes too), estimator, builds
     out["other_ms"] = out["episode_ms"] - out["physics_ms"] - out["render_ms"]
     steps = out["steps_per_ep"]
     out["floor_ms"] = steps * out["engine_us"] / 1e3 + out["render_ms"]
@@ -312,20 +373,27 @@ def report(o: dict[str, Any]) -> None:
         f"{o['frames_per_ep']:.1f} tracking frames"
     )
     st = o["step_us"]
-    print(f"step inside a push  {st:.1f} us  (push CPU time minus its frames, per step)")
+    print(
+        f"step inside a push  {st:.1f} us  (push CPU time minus its frames' renders and "
+        f"tracking, per step)"
+    )
+    planar = o["backend"] == "planar"
     for label, key in (
         ("  engine's step", "engine_us"),
         ("  friction kernel", "kernel_us"),
         ("  our Python", "python_us"),
     ):
-        print(f"{label:<20}{o[key]:.1f} us  ({100 * o[key] / st:.0f}%)")
+        note = "; planar's is inside its step" if planar and key == "kernel_us" else ""
+        print(f"{label:<20}{o[key]:.1f} us  ({100 * o[key] / st:.0f}%{note})")
     print(
-        f"  (the engine's step on the resting scene: {o['raw_us']:.1f} us; in pushes it "
-        f"costs {o['engine_us'] / o['raw_us']:.2f}x that)"
+        f"  (the engine's step on the resting scene: {o['raw_us']:.3f} us; in pushes it "
+        f"costs {o['engine_us'] / o['raw_us']:.2f}x that"
+        + ("; at rest planar solves nothing)" if planar else ")")
     )
     print(
         f"episode split       physics {o['physics_ms']:.0f} ms, renders {o['render_ms']:.0f} "
-        f"ms, the rest (perception, estimator, builds) {o['other_ms']:.0f} ms"
+        f"ms, the rest (perception, estimator, builds) {o['other_ms']:.0f} ms, of it "
+        f"tracking in pushes {o['track_ms']:.0f} ms"
     )
     print(
         f"engine floor        {o['floor_ms']:.0f} ms (the engine's steps in pushes + renders): "
@@ -343,7 +411,7 @@ def report(o: dict[str, Any]) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--backend", choices=("pybullet", "mujoco"), default="pybullet")
+    ap.add_argument("--backend", choices=("pybullet", "mujoco", "planar"), default="pybullet")
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--speed", type=float, default=40.0, help="cm/s")
     ap.add_argument("--floor", choices=("iso", "aniso"), default="iso")

@@ -162,6 +162,29 @@ def test_step_cost_smoke(monkeypatch, capfd):
     assert engine_floor > model_floor > 1
 
 
+def test_step_cost_planar_times_its_compiled_chunks(monkeypatch, capfd):
+    """planar's step is its compiled chunk (`_run_call`, the friction solve inside): timed in
+    the pushes, no separate kernel, and the module's call put back afterwards."""
+    from comexp.backends import planar_sim
+
+    call = planar_sim._run_call
+    out = run_bench(
+        "step_cost.py",
+        *("--backend", "planar", "--episodes", "1", "--raw-steps", "20"),
+        monkeypatch=monkeypatch,
+        capfd=capfd,
+    )
+    assert planar_sim._run_call is call
+    step = figure(r"step inside a push\s+{n} us", out)
+    engine = figure(r"engine's step\s+{n} us", out)
+    assert 0 < engine < step
+    assert figure(r"friction kernel\s+{n} us", out) == 0
+    assert "planar's is inside its step" in out
+    assert figure(r"our Python\s+{n} us", out) == pytest.approx(step - engine, abs=0.2)
+    engine_floor = figure(r"\(the engine's steps in pushes \+ renders\): episode {n}x", out)
+    assert engine_floor == figure(r"\(\+ the friction kernel\): episode {n}x", out) > 1
+
+
 def test_planar_speed_smoke(monkeypatch, capfd):
     out = run_bench("planar_speed.py", "--pushes", "2", monkeypatch=monkeypatch, capfd=capfd)
     assert figure(r"{n} pushes: ", out) == 2
