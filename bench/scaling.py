@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/scaling.py                       # pybullet, 200 episodes, 1 and 2
     .venv/bin/python bench/scaling.py --backend mujoco --episodes 100 --workers 1 2
+    .venv/bin/python bench/scaling.py --backend mujoco --episodes 400 --rounds 3
 
 The episodes are a fixed slice of the iso / 40 cm/s job (every 8th of its 1,600, so every
 object and condition is in it), run by `workers/pool.py` on a local Ray exactly as `comexp`
@@ -16,7 +17,10 @@ which compete with the workers for the same two cores. One-off costs are timed a
 start, the pool's start (actors + one simulator each), and the job set-up the CLI does
 (Hydra compose + validation + grid expansion of the 1,600 episodes + the resume query).
 
-Ratios measured within one run are the figures to quote: the machine is shared.
+Ratios measured within one run are the figures to quote: the machine is shared. On a host
+whose speed drifts within a minute (a worker's CPU per episode moving by 10% between two runs
+of the same code), one 1-then-2 sequence decides little: `--rounds N` alternates the worker
+counts N times, gives each round's speed-up over its own first count and their median.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -84,14 +89,16 @@ def _delta(before: dict[int, float], after: dict[int, float], pids: set[int]) ->
     return sum(after.get(p, before.get(p, 0.0)) - before.get(p, 0.0) for p in pids)
 
 
-def run_once(backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str) -> Run:
-    """One pool of `workers` actors runs `specs` into a fresh database."""
+def run_once(
+    backend: str, specs: Sequence[EpisodeSpec], workers: int, tmp: str, tag: str = ""
+) -> Run:
+    """One pool of `workers` actors runs `specs` into a fresh database (`tag`: of the round)."""
     import ray
 
     from comexp.workers.driver import run_and_store
     from comexp.workers.pool import EpisodePool
 
-    db = ResultsDB(os.path.join(tmp, f"scaling_{workers}.db"))
+    db = ResultsDB(os.path.join(tmp, f"scaling_{workers}{tag}.db"))
     results: list[EpisodeResult] = []
     db_time = 0.0
     try:
@@ -165,7 +172,10 @@ def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
     return {"hydra_grid_s": t_grid, "resume_query_s": t_resume, "ray_start_s": t_ray}
 
 
-def report(backend: str, n: int, setup: dict[str, float], runs: list[Run]) -> None:
+def report(backend: str, n: int, setup: dict[str, float], runs: list[Run], rounds: int = 1) -> None:
+    """`runs`: `rounds` rounds of the same worker counts, one after the other; each run's
+    speed-up is over its own round's first."""
+    per_round = len(runs) // rounds
     base = runs[0]
     print(f"== scaling: {backend} (source {source_digest(backend)}), {n} episodes (iso/40 slice)")
     print(
@@ -178,13 +188,14 @@ def report(backend: str, n: int, setup: dict[str, float], runs: list[Run]) -> No
         f"{'ray':>6}{'others':>8}"
     )
     print(hdr)
-    for r in runs:
+    for i, r in enumerate(runs):
+        first = runs[i // per_round * per_round]
         cap = r.workers * r.elapsed_s  # worker-seconds available
         ours = r.cpu_workers_s + r.cpu_driver_s + r.cpu_ray_s
         others = max(r.cpu_machine_s - ours, 0.0)  # other users of the machine, in cores
         print(
             f"{r.workers:>7}{r.load:>6.2f}{r.pool_start_s:>10.1f}s{r.elapsed_s:>8.1f}s"
-            f"{n / r.elapsed_s:>7.2f}{base.elapsed_s / r.elapsed_s:>9.2f}"
+            f"{n / r.elapsed_s:>7.2f}{first.elapsed_s / r.elapsed_s:>9.2f}"
             f"{100 * r.busy:>6.1f}%{1e3 * r.episode_wall_s / n:>7.0f}"
             f"{1e3 * r.cpu_workers_s / n:>7.0f}"
             f"{100 * r.db_write_s / r.elapsed_s:>8.1f}%"
@@ -198,7 +209,17 @@ def report(backend: str, n: int, setup: dict[str, float], runs: list[Run]) -> No
         "  the workers / driver / Ray's processes over (workers x elapsed); others = CPU cores\n"
         f"  used by everything else on the machine ({os.cpu_count()} cores) during the run"
     )
+    if rounds > 1:
+        for k in range(1, per_round):
+            starts = range(0, len(runs), per_round)
+            ups = [runs[j].elapsed_s / runs[j + k].elapsed_s for j in starts]
+            print(
+                f"speed-up of {runs[k].workers} workers over {base.workers}, per round: "
+                f"{', '.join(f'{u:.2f}' for u in ups)} (median {statistics.median(ups):.2f})"
+            )
     for r in runs[1:]:
+        if r.workers == base.workers:
+            continue
         same = r.errors == base.errors
         print(f"results of {r.workers} workers identical to {base.workers}: {same}")
     print(f"failed episodes: {', '.join(f'{r.workers}w {r.failed} {r.failures}' for r in runs)}")
@@ -211,12 +232,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--backend", choices=("pybullet", "mujoco"), default="pybullet")
     ap.add_argument("--episodes", type=int, default=200)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument(
+        "--rounds", type=int, default=1, help="alternate the worker counts this many times"
+    )
     a = ap.parse_args(argv)
     specs = strided(job_specs(a.backend), a.episodes)
     with tempfile.TemporaryDirectory(prefix="comexp-bench-scaling-") as tmp:
         setup = setup_costs(a.backend, tmp, max(2, *a.workers))
-        runs = [run_once(a.backend, specs, w, tmp) for w in a.workers]
-    report(a.backend, len(specs), setup, runs)
+        runs = [
+            run_once(a.backend, specs, w, tmp, f"_r{k}")
+            for k in range(max(1, a.rounds))
+            for w in a.workers
+        ]
+    report(a.backend, len(specs), setup, runs, max(1, a.rounds))
     return 0
 
 
