@@ -18,8 +18,8 @@ start, the pool's start (actors + one simulator each), and the job set-up the CL
 (Hydra compose + validation + grid expansion of the 1,600 episodes + the resume query).
 
 Ratios measured within one run are the figures to quote: the machine is shared. On a host
-whose speed drifts within a minute (a worker's CPU per episode moving by 10% between two runs
-of the same code), one 1-then-2 sequence decides little: `--rounds N` alternates the worker
+whose speed drifts within a minute (a worker's CPU per episode moving by up to 20% between two
+runs of the same code), one 1-then-2 sequence decides little: `--rounds N` alternates the worker
 counts N times, gives each round's speed-up over its own first count and their median.
 """
 

@@ -89,17 +89,18 @@ class Timers:
         return timed
 
     def wrap(self, sim: Simulator, name: str, key: str) -> None:
-        fn = self._timed(getattr(sim, name), key)
-        if key == "push":
-            inner = fn
+        timed = self._timed(getattr(sim, name), key)
+        if key != "push":
+            setattr(sim, name, timed)
+            return
 
-            def fn(*a: Any, **k: Any) -> Any:
-                for cb in ("on_frame", "frame_wanted"):
-                    if self.active and k.get(cb) is not None:
-                        k[cb] = self._timed(k[cb], "track")
-                return inner(*a, **k)
+        def push(*a: Any, **k: Any) -> Any:
+            for cb in ("on_frame", "frame_wanted"):
+                if self.active and k.get(cb) is not None:
+                    k[cb] = self._timed(k[cb], "track")
+            return timed(*a, **k)
 
-        setattr(sim, name, fn)
+        setattr(sim, name, push)
 
 
 def raw_step_s(sim: Simulator, spec: EpisodeSpec, n: int) -> float:
@@ -393,7 +394,7 @@ def report(o: dict[str, Any]) -> None:
     print(
         f"episode split       physics {o['physics_ms']:.0f} ms, renders {o['render_ms']:.0f} "
         f"ms, the rest (perception, estimator, builds) {o['other_ms']:.0f} ms, of it "
-        f"tracking in pushes {o['track_ms']:.0f} ms"
+        f"tracking in pushes {o['track_ms']:.1f} ms"
     )
     print(
         f"engine floor        {o['floor_ms']:.0f} ms (the engine's steps in pushes + renders): "

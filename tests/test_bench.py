@@ -181,6 +181,8 @@ def test_step_cost_planar_times_its_compiled_chunks(monkeypatch, capfd):
     assert figure(r"friction kernel\s+{n} us", out) == 0
     assert "planar's is inside its step" in out
     assert figure(r"our Python\s+{n} us", out) == pytest.approx(step - engine, abs=0.2)
+    # the tracker's work inside the pushes is perception: apart, not in the step
+    assert 0 < figure(r"tracking in pushes {n} ms", out) < figure(r"the rest \(.*?\) {n} ms", out)
     engine_floor = figure(r"\(the engine's steps in pushes \+ renders\): episode {n}x", out)
     assert engine_floor == figure(r"\(\+ the friction kernel\): episode {n}x", out) > 1
 
