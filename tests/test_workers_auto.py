@@ -102,3 +102,31 @@ def test_ensure_ray_starts_a_local_ray_with_the_workers_cpus(
     else:
         assert kw["address"] == address and "num_cpus" not in kw  # the cluster's own CPUs
     assert session.joined_cluster() is joined
+
+
+@pytest.mark.parametrize(
+    ("address", "log_to_driver", "monitor", "log_monitor"),
+    [(None, False, False, False), (None, True, False, None), ("auto", False, None, None)],
+)  # fmt: skip
+def test_a_local_head_starts_without_the_monitors_it_never_uses(
+    monkeypatch, address, log_to_driver, monitor, log_monitor
+) -> None:
+    """A local head skips the autoscaler monitor, and the log monitor unless the driver
+    shows worker output (~50 MB each); a node joining a cluster is left as Ray builds it.
+    The params are those `ray.init` builds through the module attribute, as Ray 2.60 does;
+    the switch is undone after `ray.init`."""
+    parameter = session.ray._private.parameter
+    original = parameter.RayParams
+    built = []
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    monkeypatch.setattr(session.ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(session.ray, "init", lambda **kw: built.append(parameter.RayParams()))
+    monkeypatch.setattr(session, "worker_env", lambda env=None: {})
+    monkeypatch.setattr(session, "_in_memory_auth_token", lambda: None)
+    monkeypatch.setattr(session, "_ray_started_here", True)  # no atexit hook from a test
+    monkeypatch.setattr(session, "_joined_cluster", False)
+    session.ensure_ray(address, 2, log_to_driver=log_to_driver)
+    (params,) = built
+    assert params.no_monitor is (monitor is False)
+    assert params.include_log_monitor is log_monitor
+    assert parameter.RayParams is original

@@ -102,6 +102,35 @@ def joined_cluster() -> bool:
     return _joined_cluster
 
 
+@contextlib.contextmanager
+def _lean_local_head(*, active: bool, log_monitor: bool):
+    """Start a local head without the processes a one-machine job never uses.
+
+    The autoscaler monitor (monitor.py) has nothing to scale on one machine, and the log
+    monitor (log_monitor.py) only forwards worker output to the driver, which a job with
+    `log_to_driver` False discards: ~50 MB of memory each (`bench/memory.py`). `ray.init`
+    exposes neither switch, so its RayParams is built with them set; a Ray without that
+    private name starts them as before.
+    """
+    parameter = getattr(getattr(ray, "_private", None), "parameter", None)
+    params_cls = getattr(parameter, "RayParams", None)
+    if not active or params_cls is None:
+        yield
+        return
+
+    def lean_params(*args: Any, **kwargs: Any) -> Any:
+        kwargs["no_monitor"] = True
+        if not log_monitor:
+            kwargs["include_log_monitor"] = False
+        return params_cls(*args, **kwargs)
+
+    parameter.RayParams = lean_params
+    try:
+        yield
+    finally:
+        parameter.RayParams = params_cls
+
+
 def ensure_ray(
     address: str | None = None,
     num_cpus: int | str | None = 2,
@@ -152,7 +181,8 @@ def ensure_ray(
         atexit.register(shutdown_ray)
     _ray_started_here = True
     try:
-        ray.init(**kwargs)
+        with _lean_local_head(active=address is None, log_monitor=log_to_driver):
+            ray.init(**kwargs)
     except (ConnectionError, RuntimeError) as e:
         shutdown_ray()
         where = {None: "a new local Ray", "auto": "a local Ray node (ray.address=auto)"}.get(
