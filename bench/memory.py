@@ -185,6 +185,7 @@ def run_job(
 
     from comexp.results.store import ResultsDB
     from comexp.workers.driver import run_and_store
+    from comexp.workers.kernel_cache import warm_kernel_cache
     from comexp.workers.pool import EpisodePool
     from comexp.workers.session import ensure_ray
 
@@ -197,8 +198,9 @@ def run_job(
         db = ResultsDB(os.path.join(tmp, "mem.db"))
         try:
             sweep = db.start_sweep(command_line="bench/memory.py")
-            ensure_ray(None, workers)
             options = job_backend_options(backend, floor, speed)
+            warm_kernel_cache(backend, specs[0], options)  # as `comexp` does, before Ray
+            ensure_ray(None, workers)
             pool = EpisodePool(backend, workers, backend_options=options)
             with pool:
                 worker_pids = [

@@ -359,17 +359,16 @@ def test_scaling_reports_runs(capfd):
             {"a": 0.5}, 1.0,
         )  # fmt: skip
 
+    setup = {"hydra_grid_s": 0.1, "resume_query_s": 0.1, "kernels_s": 1.0, "ray_start_s": 2.0}
     capfd.readouterr()
-    scaling.report("pybullet", 8, {"hydra_grid_s": 0.1, "resume_query_s": 0.1, "ray_start_s": 2},
-                   [run(1, 4.0), run(2, 2.5)])  # fmt: skip
+    scaling.report("pybullet", 8, setup, [run(1, 4.0), run(2, 2.5)])
     out = capfd.readouterr().out
     assert "results of 2 workers identical to 1: True" in out
     assert figure(r"\n\s+2\s+[\d.]+\s+[\d.]+s\s+[\d.]+s\s+[\d.]+\s+{n}", out) == 1.6  # speed-up
 
     # --rounds: each round's speed-up over its own first count, and their median
     runs = [run(1, 4.0), run(2, 2.5), run(1, 5.0), run(2, 2.5), run(1, 4.0), run(2, 2.0)]
-    scaling.report("pybullet", 8, {"hydra_grid_s": 0.1, "resume_query_s": 0.1, "ray_start_s": 2},
-                   runs, rounds=3)  # fmt: skip
+    scaling.report("pybullet", 8, setup, runs, rounds=3)
     out = capfd.readouterr().out
     assert "speed-up of 2 workers over 1, per round: 1.60, 2.00, 2.00 (median 2.00)" in out
     rows = re.findall(r"\n\s+2\s+[\d.]+\s+[\d.]+s\s+[\d.]+s\s+[\d.]+\s+([\d.]+)", out)

@@ -488,11 +488,30 @@ def test_smoke_example_with_pybullet(tmp_path: Path) -> None:
     assert mean_err < 3.0  # cm: an estimator that works at all beats the footprint size
 
 
-def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path, local_ray) -> None:
+def test_the_planar_reference_runs_a_job_with_real_episodes(
+    tmp_path: Path, local_ray, monkeypatch
+) -> None:
     """`backend=planar` behind the same command line: real physics, perception and estimator,
-    stored with the planar physics identity."""
+    stored with the planar physics identity; the job's first episode fills the kernel cache
+    in a child before Ray is asked for (workers/kernel_cache.py)."""
+    import comexp.workers.kernel_cache as kernel_cache
+    import comexp.workers.session as session
     from comexp.results.store import ResultsDB
 
+    calls: list[tuple] = []
+    warm, ensure = kernel_cache.warm_kernel_cache, session.ensure_ray
+
+    def warm_up(backend, spec, options=None, **kw):
+        calls.append(("warm", backend, spec.object, options))
+        return warm(backend, spec, options, **kw)
+
+    def ensure_ray(*a, **kw):
+        calls.append(("ray",))
+        return ensure(*a, **kw)
+
+    monkeypatch.setattr(kernel_cache, "_warmed", set())
+    monkeypatch.setattr(kernel_cache, "warm_kernel_cache", warm_up)
+    monkeypatch.setattr(session, "ensure_ray", ensure_ray)
     r = comexp_in_process(
         tmp_path,
         "backend=planar",
@@ -503,6 +522,8 @@ def test_the_planar_reference_runs_a_job_with_real_episodes(tmp_path: Path, loca
     )
     assert r.returncode == 0, r.stderr
     assert "planar iso 40 cm/s: ran 1 episodes" in r.stdout, r.stdout
+    assert calls == [("warm", "planar", "rect_8x5", {}), ("ray",)], calls
+    assert "planar: kernels ready in" in r.stdout, r.stdout
     with ResultsDB(tmp_path / "results" / "p.db", readonly=True) as db:
         (row,) = db.episodes(columns=["backend", "status", "error_cm", "physics"])
     assert row["backend"] == "planar" and row["status"] == "ok", row

@@ -45,6 +45,7 @@ from comexp.experiment.config import (
 )
 from comexp.experiment.grid import expand_grid
 from comexp.experiment.objects import yaml_error_line
+from comexp.experiment.task import EpisodeSpec
 
 log = logging.getLogger("comexp")
 
@@ -324,14 +325,60 @@ def _scrub_hydra_files(url: str) -> None:
                     f.write_text(clean)
 
 
+def _run_todo(
+    cfg: DictConfig, exp: ExperimentConfig, db: Any, todo: list[EpisodeSpec], label: str
+) -> dict[str, int]:
+    """Run the job's episodes not stored yet on a pool of `exp.workers` and store them under
+    a new sweep; the kernels first (a local job's workers then load them), then Ray."""
+    from comexp.workers.driver import Progress, run_and_store
+    from comexp.workers.kernel_cache import warm_kernel_cache
+    from comexp.workers.pool import EpisodePool
+    from comexp.workers.session import ensure_ray
+
+    if exp.ray.address is None:  # local workers load the kernels this compiles
+        warm_kernel_cache(exp.backend.name, todo[0], simulator_options(exp))
+    # Ray first: a cluster that cannot be joined leaves no sweep row behind
+    # (`probe_resources` has already rejected an address where nothing listens).
+    ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
+    hc = HydraConfig.get()
+    job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    sweep_id = db.start_sweep(
+        command_line=_scrub(shlex.join(["comexp", *sys.argv[1:]]), exp.db),
+        config_yaml=_scrub(OmegaConf.to_yaml(job_cfg, resolve=True), exp.db),
+        job_name=Path(hc.runtime.output_dir).name,  # ties the sweep to its folder
+        versions=_versions(),
+        git_rev=_git_rev(),
+    )
+    pool = EpisodePool(
+        exp.backend.name,
+        exp.workers,
+        batch_size=exp.execution.batch_size,
+        max_retries=exp.execution.max_retries,
+        replace_timeout_s=exp.execution.restart_timeout_s,
+        episode_timeout_s=exp.execution.episode_timeout_s,
+        backend_options=simulator_options(exp),
+    )
+    with pool:
+        stats = run_and_store(
+            pool,
+            todo,
+            lambda rs: db.add_results(sweep_id, rs),
+            progress=Progress(len(todo), desc=label),
+        )
+    failures = ", ".join(f"{k} {v}" for k, v in stats.failures.most_common())
+    print(
+        f"{label}: ran {stats.done} episodes in {stats.wall_s:.1f} s "
+        f"({stats.failed} failed{': ' + failures if failures else ''}), "
+        f"stored {stats.stored}"
+    )
+    return {"ran": stats.done, "failed": stats.failed, "stored": stats.stored}
+
+
 def run_job(cfg: DictConfig) -> dict[str, Any]:
     """Validate, expand the grid, run what is not stored yet, write the job's reports (the
     validate callback has probed the database location and Ray before Hydra wrote anything)."""
     from comexp.results.identity import episode_key
     from comexp.results.store import redact_url
-    from comexp.workers.driver import Progress, run_and_store
-    from comexp.workers.pool import EpisodePool
-    from comexp.workers.session import ensure_ray
 
     job: PreparedJob = prepare_job(cfg)
     exp = job.cfg
@@ -353,41 +400,7 @@ def run_job(cfg: DictConfig) -> dict[str, Any]:
         )
         summary: dict[str, Any] = {"episodes": len(specs), "skipped": len(specs) - len(todo)}
         if todo:
-            # Ray first: a cluster that cannot be joined leaves no sweep row behind
-            # (`probe_resources` has already rejected an address where nothing listens).
-            ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
-            hc = HydraConfig.get()
-            job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
-            sweep_id = db.start_sweep(
-                command_line=_scrub(shlex.join(["comexp", *sys.argv[1:]]), exp.db),
-                config_yaml=_scrub(OmegaConf.to_yaml(job_cfg, resolve=True), exp.db),
-                job_name=Path(hc.runtime.output_dir).name,  # ties the sweep to its folder
-                versions=_versions(),
-                git_rev=_git_rev(),
-            )
-            pool = EpisodePool(
-                exp.backend.name,
-                exp.workers,
-                batch_size=exp.execution.batch_size,
-                max_retries=exp.execution.max_retries,
-                replace_timeout_s=exp.execution.restart_timeout_s,
-                episode_timeout_s=exp.execution.episode_timeout_s,
-                backend_options=simulator_options(exp),
-            )
-            with pool:
-                stats = run_and_store(
-                    pool,
-                    todo,
-                    lambda rs: db.add_results(sweep_id, rs),
-                    progress=Progress(len(todo), desc=label),
-                )
-            failures = ", ".join(f"{k} {v}" for k, v in stats.failures.most_common())
-            print(
-                f"{label}: ran {stats.done} episodes in {stats.wall_s:.1f} s "
-                f"({stats.failed} failed{': ' + failures if failures else ''}), "
-                f"stored {stats.stored}"
-            )
-            summary.update(ran=stats.done, failed=stats.failed, stored=stats.stored)
+            summary.update(_run_todo(cfg, exp, db, todo, label))
         else:
             print(f"{label}: all {len(specs)} episodes already stored")
         from comexp.results.reports import write_job_reports

@@ -1,0 +1,107 @@
+"""The kernel warm-up: one child process fills Numba's cache before a local job's workers start,
+so that they load the kernels instead of each compiling them (workers/kernel_cache.py)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from test_episode import spec_for
+
+from comexp.experiment.episode import EpisodeSpec
+from comexp.workers import kernel_cache
+
+
+def planar_spec(n_push: int = 1) -> EpisodeSpec:
+    """A real planar episode (the camera watching its pushes, as a job's)."""
+    return spec_for(backend="planar", fps=30.0, n_push=n_push)
+
+
+@pytest.fixture
+def fresh(monkeypatch):
+    """A process that has warmed nothing yet, outside the test seams."""
+    monkeypatch.setattr(kernel_cache, "_warmed", set())
+    for k in ("COMEXP_RUNNER", "COMEXP_SIMULATOR_FACTORY", "NUMBA_DISABLE_JIT"):
+        monkeypatch.delenv(k, raising=False)
+    return monkeypatch
+
+
+def test_the_warm_up_runs_once_per_backend_and_options_and_not_for_the_seams(fresh):
+    children: list[tuple[list[str], bytes]] = []
+
+    def run(cmd, input, **kw):  # noqa: A002 - subprocess.run's own name
+        children.append((cmd, input))
+        return subprocess.CompletedProcess(cmd, 0, b"", b"")
+
+    fresh.setattr(kernel_cache.subprocess, "run", run)
+    spec = planar_spec()
+    assert kernel_cache.warm_kernel_cache("planar", spec)
+    assert not kernel_cache.warm_kernel_cache("planar", spec)  # this process has them
+    assert kernel_cache.warm_kernel_cache("pybullet", spec, {"floor_friction": "model"})
+    assert kernel_cache.warm_kernel_cache("pybullet", spec, {"floor_friction": "native"})
+    assert [c[0][-2:] for c in children] == [["-m", "comexp.workers.kernel_cache"]] * 3
+    assert children[0][0][0] == sys.executable
+    fresh.setattr(kernel_cache, "_warmed", set())
+    fresh.setenv("COMEXP_RUNNER", "tests.fakes:run")  # a fake runner compiles nothing
+    assert not kernel_cache.warm_kernel_cache("planar", spec)
+    fresh.delenv("COMEXP_RUNNER")
+    fresh.setenv("NUMBA_DISABLE_JIT", "1")  # nothing to compile; the episode would crawl
+    assert not kernel_cache.warm_kernel_cache("planar", spec)
+    assert len(children) == 3
+
+
+def test_a_failing_warm_up_is_a_warning_naming_the_child_s_error(fresh, caplog):
+    spec = planar_spec()
+    with caplog.at_level(logging.WARNING, logger="comexp.pool"):
+        assert not kernel_cache.warm_kernel_cache("no_such_backend", spec)
+    (record,) = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert "kernel warm-up failed (exit 1" in record.getMessage()
+    assert "no_such_backend" in record.getMessage()
+
+
+def test_an_overrunning_warm_up_is_ended_with_a_warning(fresh, caplog):
+    with caplog.at_level(logging.WARNING, logger="comexp.pool"):
+        assert not kernel_cache.warm_kernel_cache("planar", planar_spec(), timeout_s=0.05)
+    assert any("took over" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.slow
+def test_after_the_warm_up_a_fresh_process_compiles_nothing(fresh, tmp_path: Path):
+    """On a cold cache (a Numba cache directory of its own) the warm-up compiles every kernel
+    an episode of the job needs: a worker-like process then only loads them. ~30 s: a cold
+    compile of every kernel."""
+    fresh.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba"))
+    spec = planar_spec(n_push=2)
+    assert kernel_cache.warm_kernel_cache("planar", spec)
+    assert list((tmp_path / "numba").rglob("*.nbi"))
+    probe = f"""
+import pickle, sys
+from numba.core.dispatcher import Dispatcher
+from comexp.workers.kernel_cache import _run_one_episode
+spec = pickle.loads({pickle_bytes(spec)!r})
+_run_one_episode("planar", {{}}, spec)
+hits = misses = 0
+for name, mod in list(sys.modules.items()):
+    if name.startswith("comexp"):
+        for obj in vars(mod).values():
+            if isinstance(obj, Dispatcher) and obj.signatures:
+                hits += sum(obj.stats.cache_hits.values())
+                misses += sum(obj.stats.cache_misses.values())
+print(hits, misses)
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", probe], env=dict(os.environ), capture_output=True, text=True,
+        check=True,
+    )  # fmt: skip
+    hits, misses = map(int, out.stdout.split()[-2:])
+    assert hits > 0 and misses == 0, out.stdout
+
+
+def pickle_bytes(spec: EpisodeSpec) -> bytes:
+    import pickle
+
+    return pickle.dumps(spec)

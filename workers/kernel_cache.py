@@ -1,0 +1,113 @@
+"""Compile the backend's Numba kernels once, in a short-lived process, before the workers start.
+
+The kernels are compiled on first use and cached on disk (`cache=True`). With a cold cache (the
+first job after an install or a kernel edit) every worker would compile them itself, and the
+compiler's memory stays with the worker for the whole job: a pybullet worker holds ~370 MB
+(PSS) instead of ~200, and a 2-worker job goes over 1 GB (`bench/memory.py`). Running one
+episode of the job in a child process fills the cache; the child exits, its memory goes back to
+the system, and the workers load the compiled kernels from disk. With a warm cache the child
+only loads them (~2 s per backend, once per driver process).
+
+It runs before Ray starts, so that the compiler's peak does not add to Ray's processes. Only
+for workers on this machine (callers skip it for a cluster, whose nodes have caches of their
+own), and only for the real episode runner and simulators: the test seams (`COMEXP_RUNNER`,
+`COMEXP_SIMULATOR_FACTORY`) run fakes that compile nothing. A child that fails or overruns is
+a warning, never an error: the workers then compile for themselves, as they always could.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import subprocess
+import sys
+import time
+from typing import Any
+
+from comexp.experiment.task import EpisodeSpec
+
+log = logging.getLogger("comexp.pool")
+
+WARM_UP_TIMEOUT_S = 600.0  # a cold compile of every kernel: ~30 s on 2 cores (bench/memory.py)
+# (backend, options) whose kernels this process has already had compiled
+_warmed: set[str] = set()
+
+
+def warm_kernel_cache(
+    backend: str,
+    spec: EpisodeSpec,
+    backend_options: dict[str, Any] | None = None,
+    *,
+    timeout_s: float = WARM_UP_TIMEOUT_S,
+) -> bool:
+    """Run `spec` on `backend` in a child process (this process's environment, which local
+    workers inherit) so that every kernel a job of it needs is in Numba's cache before the
+    workers start; once per backend and options per process. Returns whether the child ran
+    the episode (False when skipped or failed: the workers compile what they miss)."""
+    from .actor import RUNNER_ENV, SIMULATOR_FACTORY_ENV
+
+    key = repr((backend, sorted((backend_options or {}).items())))
+    seams = os.environ.get(RUNNER_ENV) or os.environ.get(SIMULATOR_FACTORY_ENV)
+    if key in _warmed or seams or _numba_disabled():
+        return False
+    _warmed.add(key)  # a failure is not retried: the workers compile for themselves
+    payload = pickle.dumps((backend, dict(backend_options or {}), spec))
+    log.info("%s: loading the compiled kernels (compiling them if the cache is cold)", backend)
+    t0 = time.perf_counter()
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", __name__],
+            input=payload,
+            capture_output=True,
+            timeout=timeout_s,
+            check=False,
+        )
+    except subprocess.TimeoutExpired:
+        log.warning(
+            "%s: compiling the kernels took over %.0f s; the workers compile what is missing",
+            backend,
+            timeout_s,
+        )
+        return False
+    except OSError as e:
+        log.warning("%s: cannot start the kernel warm-up (%s)", backend, e)
+        return False
+    if done.returncode != 0:
+        tail = done.stderr.decode(errors="replace").strip().splitlines()[-1:] or ["?"]
+        log.warning(
+            "%s: the kernel warm-up failed (exit %d: %s); the workers compile for themselves",
+            backend,
+            done.returncode,
+            tail[0][:300],
+        )
+        return False
+    log.info("%s: kernels ready in %.1f s", backend, time.perf_counter() - t0)
+    return True
+
+
+def _numba_disabled() -> bool:
+    """`NUMBA_DISABLE_JIT=1`: nothing to compile, and the child's episode would run in Python."""
+    return os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0")
+
+
+def _run_one_episode(backend: str, options: dict[str, Any], spec: EpisodeSpec) -> str:
+    """The workers' own episode: the same simulator and runner, so the same kernels compile."""
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.registry import make_simulator
+
+    sim = make_simulator(backend, **options)
+    try:
+        return run_episode(spec, sim).status
+    finally:
+        sim.close()
+
+
+def main() -> int:
+    backend, options, spec = pickle.loads(sys.stdin.buffer.read())  # noqa: S301 - our parent's
+    _run_one_episode(backend, options, spec)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
