@@ -59,6 +59,7 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
 from comexp.backends.physics_settings import (  # noqa: E402
     DEFAULT_CONTACT,
     MUJOCO,
+    STILL_JUMPS,
     MujocoContactSettings,
 )
 from comexp.experiment.interface import PushStatus, Simulator  # noqa: E402
@@ -454,6 +455,7 @@ class _Renderer:
 class MujocoSimulator(Simulator):
     name = "mujoco"
     check_every_steps = 10  # MuJoCo runs this many steps in C between two protocol checks
+    still_jump_margin_m = STILL_JUMPS.margin_m  # still steps jumped, not stepped
 
     def __init__(
         self,
@@ -643,6 +645,15 @@ class MujocoSimulator(Simulator):
             (float(vel[-1, 0]), float(vel[-1, 1])) if n_all else (0.0, 0.0),
         )
         return touched, _tilt_deg_of_cos(min_cos)
+
+    def _jump_pusher(self, targets: np.ndarray) -> None:
+        """The pusher on its last target at its last step's velocity, as `_advance` leaves it
+        (`push_steps` puts it on its path before every step anyway)."""
+        prev = self._pusher_xy() if len(targets) < 2 else targets[-2]
+        last, dt = targets[-1], self.settings.timestep_s
+        vel = ((last[0] - prev[0]) / dt, (last[1] - prev[1]) / dt)
+        self._set_pusher((float(last[0]), float(last[1])), (float(vel[0]), float(vel[1])))
+        self._pushed = False
 
     def _friction_steps(
         self, m: mujoco.MjModel, d: mujoco.MjData, starts: np.ndarray, vels: np.ndarray

@@ -48,6 +48,22 @@ class SlowSteps:
 
 
 @dataclass(frozen=True)
+class StillJumps:
+    """The engines' still steps (`Simulator._steps_still`): while the object is at rest by the
+    settle rule and the pusher stays farther from its outline than each step is long plus
+    `margin_m`, the engine is not stepped: time passes, the object's state is kept, the
+    pusher moves on. An engine's resting object never stops exactly; stepped, it creeps at
+    the contacts' numerical scale (pybullet: up to 0.05 deg in a settle hold). 1 mm is beyond
+    any contact a step could make (a 40 cm/s pusher moves 0.4 mm a step), and the protocol
+    steps the last chunk before the pusher arrives."""
+
+    margin_m: float = 1e-3
+
+
+STILL_JUMPS = StillJumps()
+
+
+@dataclass(frozen=True)
 class MujocoContactSettings:
     """Solver and contact parameters; the defaults are the validated ones.
 
@@ -117,24 +133,25 @@ PLANAR = BackendPhysics(
 PYBULLET = BackendPhysics(
     # 2: shared push protocol; 3: compiled friction; 4: roller pusher; 5: the footprint
     # friction's line search (results moved within the solver's tolerance); 6: the footprint's
-    # sample loops as SIMD loops (last-bit differences)
-    "pybullet-6",
+    # sample loops as SIMD loops (last-bit differences); 7: still steps jumped (`StillJumps`)
+    "pybullet-7",
     "pybullet",
     {
         "pusher_mass_kg": PYBULLET_PUSHER_MASS_KG,
         "pusher_axle_inertia_m2": PYBULLET_PUSHER_AXLE_INERTIA_M2,
         "solver_iterations": PYBULLET_SOLVER_ITERATIONS,
         "footprint": FrictionSettings(),
+        "still_jumps": STILL_JUMPS,
     },
 )
 MUJOCO = BackendPhysics(
     # 2: the shared push protocol; 3: compiled footprint friction; 4: the step loop compiled
     # (its 3x3 products in scalars, not BLAS: last-bit differences); 5: the footprint
     # friction's line search (results moved within the solver's tolerance); 6: the footprint's
-    # sample loops as SIMD loops (last-bit differences)
-    "mujoco-6",
+    # sample loops as SIMD loops (last-bit differences); 7: still steps jumped (`StillJumps`)
+    "mujoco-7",
     "mujoco",
-    (DEFAULT_CONTACT, FrictionSettings()),
+    (DEFAULT_CONTACT, FrictionSettings(), STILL_JUMPS),
 )
 BUILTIN_PHYSICS: dict[str, BackendPhysics] = {
     "planar": PLANAR,

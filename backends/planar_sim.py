@@ -65,6 +65,8 @@ from comexp.backends.floor_friction import (
 )
 from comexp.backends.numba_kernels import DirectCall, stamp_with_sources
 from comexp.backends.physics_settings import PLANAR, SlowSteps
+from comexp.experiment import clear_steps as clear_steps_module
+from comexp.experiment.clear_steps import clear_steps, closest_on_polygon
 from comexp.experiment.interface import Simulator
 from comexp.method.rendering import render_prism_depth, render_prism_window_depth
 from comexp.method.scene import (
@@ -107,28 +109,6 @@ TIPPED_OVER_RAD = math.pi / 2  # the tilt an object that tipped over reports: on
 
 
 @njit(cache=True)
-def _closest_on_polygon(qx, qy, poly):
-    """Closest boundary point of a polygon to q, its distance, and whether q is inside."""
-    n = poly.shape[0]
-    best = np.inf
-    bx = by = 0.0
-    inside = False
-    for i in range(n):
-        ax, ay = poly[i, 0], poly[i, 1]
-        cx, cy = poly[(i + 1) % n, 0], poly[(i + 1) % n, 1]
-        ex, ey = cx - ax, cy - ay
-        t = ((qx - ax) * ex + (qy - ay) * ey) / (ex * ex + ey * ey)
-        t = min(1.0, max(0.0, t))
-        px, py = ax + t * ex, ay + t * ey
-        d = math.hypot(px - qx, py - qy)
-        if d < best:
-            best, bx, by = d, px, py
-        if (ay > qy) != (cy > qy) and qx < ax + (qy - ay) * ex / ey:
-            inside = not inside  # (the edge crosses q's row, so ey != 0 here)
-    return bx, by, best, inside
-
-
-@njit(cache=True)
 def _contact(pg, ms, qx, qy):
     """Pusher-object contact at pusher centre q, world frame: (found, normal pointing into
     the object, contact point minus the CoM, signed gap positive when apart)."""
@@ -139,7 +119,7 @@ def _contact(pg, ms, qx, qy):
     for i in range(out.shape[0]):
         poly[i, 0] = out[i, 0] * c - out[i, 1] * s + ox
         poly[i, 1] = out[i, 0] * s + out[i, 1] * c + oy
-    px, py, dist, inside = _closest_on_polygon(qx, qy, poly)
+    px, py, dist, inside = closest_on_polygon(qx, qy, poly)
     if dist < 1e-12:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
     if inside:
@@ -368,25 +348,6 @@ def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace, g
 
 
 @njit(cache=True)
-def _still_steps(q0x, q0y, targets, poly, radius, margin):
-    """`PlanarSimulator._steps_still`'s count: the pusher starting at q0 outside the polygon
-    by its radius, the leading targets each farther from the polygon's boundary (less the
-    radius) than the step to it is long plus `margin`. The count only decides which steps
-    the protocol advances without its checks; a step it leaves out is checked as usual."""
-    _, _, d, inside = _closest_on_polygon(q0x, q0y, poly)
-    if inside or d < radius:
-        return 0
-    px, py = q0x, q0y
-    for i in range(targets.shape[0]):
-        qx, qy = targets[i, 0], targets[i, 1]
-        _, _, d, _ = _closest_on_polygon(qx, qy, poly)
-        if d - radius < math.hypot(qx - px, qy - py) + margin:
-            return i
-        px, py = qx, qy
-    return targets.shape[0]
-
-
-@njit(cache=True)
 def _pitch_rate_world(pg, ms):
     """The pitch rate as an angular velocity (world x, y): about the edge, z x n."""
     if ms[PITCH_W] == 0.0 or ms[OVER] != 0.0:
@@ -399,7 +360,7 @@ def _pitch_rate_world(pg, ms):
 
 
 # the steps above compile the friction kernels into their own machine code
-stamp_with_sources(globals(), floor_friction)
+stamp_with_sources(globals(), floor_friction, clear_steps_module)
 _run_call = DirectCall(_run)  # every chunk of the protocol's steps, from Python
 
 
@@ -621,7 +582,7 @@ class PlanarSimulator(Simulator):
         poly = self.object_state().pose.to_world(m.outline)
         pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
         q0x, q0y = float(self._q[0]), float(self._q[1])
-        return _still_steps(q0x, q0y, pts, poly, float(m.radius), _STILL_MARGIN_M)
+        return clear_steps(q0x, q0y, pts, poly, float(m.radius), _STILL_MARGIN_M)
 
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
         m = self._require()

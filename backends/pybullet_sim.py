@@ -42,6 +42,7 @@ from comexp.backends.physics_settings import (
     PYBULLET_PUSHER_AXLE_INERTIA_M2,
     PYBULLET_PUSHER_MASS_KG,
     PYBULLET_SOLVER_ITERATIONS,
+    STILL_JUMPS,
 )
 from comexp.experiment.contact import pusher_contact_height_m
 from comexp.experiment.interface import PARK_XY_M, Simulator
@@ -205,6 +206,7 @@ class PybulletSimulator(Simulator):
     """pybullet implementation of the simulator interface (see the module docstring)."""
 
     name = "pybullet"
+    still_jump_margin_m = STILL_JUMPS.margin_m  # still steps jumped, not stepped
 
     def __init__(
         self,
@@ -587,6 +589,17 @@ class PybulletSimulator(Simulator):
         _, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
         roll, pitch, _ = pb.getEulerFromQuaternion(quat)
         return touched, tilt_deg(roll, pitch)
+
+    def _jump_pusher(self, targets: np.ndarray) -> None:
+        """The pusher on its last target at its height, at rest, its axle as it was: the next
+        `_step_once` sets the velocity that reaches its next target."""
+        c = self._cid
+        _, quat = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=c)
+        pos = (float(targets[-1][0]), float(targets[-1][1]), self._pusher_z)
+        pb.resetBasePositionAndOrientation(self._pusher, pos, quat, physicsClientId=c)
+        pb.resetBaseVelocity(self._pusher, _ZERO3, _ZERO3, physicsClientId=c)
+        self._pusher_target = (pos[0], pos[1])
+        self._pushed = False
 
     def close(self) -> None:
         if self._cid >= 0:

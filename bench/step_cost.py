@@ -11,7 +11,8 @@ slice, vision and the default camera):
 
 - **in-push cost per step**: `sim.push` time, minus the tracking frames rendered inside
   it and the tracker's work on them (its `on_frame` / `frame_wanted` callbacks: perception,
-  counted with the rest outside physics), over `PushOutcome.steps`;
+  counted with the rest outside physics), over the steps the engine took (an engine jumps
+  the still ones, `Simulator._steps_still`: `PushOutcome.steps` counts those too);
 - **the engine's step in pushes**: the engine's own step call alone, no Python of ours
   around it, in the states the pushes drive it through (`EngineStepsInPushes`: pybullet's
   `stepSimulation` calls timed one by one; MuJoCo's chunks replayed from their saved states
@@ -341,10 +342,12 @@ def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[
         episode_ms=1e3 * sum(walls) / ne,
         median_ms=1e3 * statistics.median(walls),
         steps_per_ep=t.steps / ne,
-        step_us=1e6 * physics_s / t.steps,
+        # the engine's own steps: an engine jumps the still ones (`Simulator._steps_still`)
+        stepped_per_ep=engine_steps / ne,
+        step_us=1e6 * physics_s / max(engine_steps, 1),
         raw_us=1e6 * statistics.median(raws),
         engine_us=1e6 * engine_s / max(engine_steps, 1),
-        kernel_us=1e6 * kernel_s / max(t.steps, 1),
+        kernel_us=1e6 * kernel_s / max(engine_steps, 1),
         kernel_steps=kernel_n,
         render_ms=1e3 * (t.s["render"] + t.s["frame"]) / ne,
         track_ms=1e3 * t.s["track"] / ne,
@@ -356,7 +359,7 @@ def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[
     out["physics_ms"] = 1e3 * physics_s / ne
     # perception (the tracking inside pushes too), estimator, builds
     out["other_ms"] = out["episode_ms"] - out["physics_ms"] - out["render_ms"]
-    steps = out["steps_per_ep"]
+    steps = out["stepped_per_ep"]
     out["floor_ms"] = steps * out["engine_us"] / 1e3 + out["render_ms"]
     out["model_floor_ms"] = out["floor_ms"] + steps * out["kernel_us"] / 1e3
     out["compiled_ms"] = out["model_floor_ms"] + out["other_ms"]
@@ -370,13 +373,14 @@ def report(o: dict[str, Any]) -> None:
     )
     print(
         f"episode             {o['episode_ms']:.0f} ms mean, {o['median_ms']:.0f} median; "
-        f"{o['steps_per_ep']:.0f} steps, {o['renders_per_ep']:.1f} images + "
+        f"{o['steps_per_ep']:.0f} steps ({o['stepped_per_ep']:.0f} stepped, the rest "
+        f"jumped still), {o['renders_per_ep']:.1f} images + "
         f"{o['frames_per_ep']:.1f} tracking frames"
     )
     st = o["step_us"]
     print(
         f"step inside a push  {st:.1f} us  (push CPU time minus its frames' renders and "
-        f"tracking, per step)"
+        f"tracking, per stepped step)"
     )
     planar = o["backend"] == "planar"
     for label, key in (

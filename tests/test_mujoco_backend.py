@@ -27,6 +27,12 @@ THROUGH_COM_TARGET_DEG = 0.1
 # contacts, docs/physics_mujoco.md "open problems"); measured residual 0.03-0.10 deg there,
 # 0.7-4.6 deg before the fixes, at the exact starts; 1.92 deg at starts 0.1 um away (xfail)
 THROUGH_COM_IMPACT_DEG = 0.25
+# floor mu 0.1 at 40 cm/s: a sticking push through the CoM is unstable, and the long slide
+# after it grows a 1e-7 seed; over 21 starts within 0.5 um / 5 urad of each set-up, 1 of 21
+# turns more than 0.1 deg at yaw 0.7 (0.354 deg with every still step stepped, mujoco-6;
+# 0.156 with them jumped, mujoco-7; medians 0.0013 / 0.0003 deg). Beyond the target there
+# (xfail), the contract's bound still holds.
+THROUGH_COM_CONTRACT_DEG = 0.5
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +80,9 @@ def test_push_through_com_mirrored_and_rotated(sim, com, yaw, mu, speed):
     bound = THROUGH_COM_IMPACT_DEG if impact else THROUGH_COM_TARGET_DEG
     if impact and worst >= bound:
         pytest.xfail(f"impact lift on mu 1 (known, documented): {np.round(rotations, 3)} deg")
+    if (mu, speed) == (0.1, 0.4) and worst >= bound:
+        assert worst < THROUGH_COM_CONTRACT_DEG, f"rotated {np.round(rotations, 3)} deg"
+        pytest.xfail(f"a seed grown in the slide (known, measured): {np.round(rotations, 3)} deg")
     assert worst < bound, f"rotated {np.round(rotations, 3)} deg"
 
 
@@ -221,21 +230,25 @@ def test_a_traced_push_is_the_untraced_push(sim, mu, speed):
 
 
 def test_recording_the_friction_inputs_changes_nothing(sim, monkeypatch):
-    """`FootprintFriction.inputs` (bench/step_cost.py's replay) gets one row per step and
-    leaves the push as it was."""
+    """`FootprintFriction.inputs` (bench/step_cost.py's replay) gets one row per step the
+    engine takes and leaves the push as it was; the still steps it jumps compute none."""
     plain = _box_push(sim, 0.5, 0.4)
     rows: list = []
     real_build = sim.build
 
     def build(scene):
+        rows.clear()
         real_build(scene)
         sim._fric.inputs = rows
 
     monkeypatch.setattr(sim, "build", build)
     recorded = _box_push(sim, 0.5, 0.4)
     assert recorded == plain
-    assert len(rows) == recorded.steps
+    assert 0 < len(rows) < recorded.steps  # the approach and the retract jumped
     assert any(p for *_, p in rows) and not all(p for *_, p in rows)  # touched, then not
+    monkeypatch.setattr(sim, "still_jump_margin_m", None)  # every step stepped
+    stepped = _box_push(sim, 0.5, 0.4)
+    assert len(rows) == stepped.steps == recorded.steps
 
 
 def test_the_touch_sensor_reads_the_contact_list(sim):

@@ -138,6 +138,9 @@ class Simulator(ABC):
     # steps advanced between two failure / rest checks (an engine-specific need: MuJoCo runs a
     # chunk of steps in C between Python checks); part of the protocol's settings
     check_every_steps: int = 5
+    # an engine's jump of still steps (`_steps_still`): the pusher's clearance beyond a step's
+    # length (m) from an object at rest by the settle rule; None: still steps are stepped
+    still_jump_margin_m: float | None = None
 
     def __init__(self, settings: SimSettings | None = None) -> None:
         self.settings = settings or SimSettings()
@@ -203,11 +206,45 @@ class Simulator(ABC):
         )
 
     def _steps_still(self, targets: np.ndarray) -> int:
-        """How many of the pusher's next `targets` (one per step) surely leave the object
-        exactly as it is: a backend that can prove it (the object exactly at rest, nothing
-        able to reach it within those steps) returns a count, and the protocol advances them
-        without its checks (each would see the same state). 0: unknown, check every chunk."""
-        return 0
+        """How many of the pusher's next `targets` (one per step) surely leave the object as
+        it is: the protocol advances them without its checks (`_advance_still`), each of
+        which would see the same resting object. 0: unknown, check every chunk.
+
+        An engine's object never comes exactly to rest: it creeps and bobs at the contacts'
+        numerical scale. With `still_jump_margin_m` set, an object at rest by the settle rule
+        (`at_rest`) counts as at rest, and the steps in which the pusher stays farther from
+        its outline than the step is long plus that margin (`clear_steps`, beyond the reach
+        of any contact a step could make) are jumped. A backend whose object is exactly at
+        rest (planar) proves it and steps them."""
+        margin = self.still_jump_margin_m
+        if margin is None:
+            return 0
+        st = self.object_state()
+        if not at_rest(st, self.settings):
+            return 0
+        from comexp.experiment.clear_steps import clear_steps
+
+        poly = st.pose.to_world(self._outline_m())
+        q = self._pusher_xy()
+        pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
+        return clear_steps(float(q[0]), float(q[1]), pts, poly, self._pusher_radius_m(), margin)
+
+    def _advance_still(self, targets: np.ndarray) -> bool:
+        """Advance steps `_steps_still` counted; whether the pusher touched the object. They
+        are stepped, or with `still_jump_margin_m` jumped: time passes, the object's state is
+        kept as it is (a resting object stays at rest), the pusher ends on `targets[-1]` as
+        stepping would leave it (`_jump_pusher`)."""
+        if self.still_jump_margin_m is None:
+            return self._advance(targets)[0]
+        self._jump_pusher(targets)
+        if self.trace is not None:
+            self.trace.extend([self.object_state()] * len(targets))
+        return False
+
+    def _jump_pusher(self, targets: np.ndarray) -> None:
+        """Put the pusher where, and moving as, `_advance(targets)` would leave it, without
+        stepping; no contact. A backend that sets `still_jump_margin_m` implements it."""
+        raise NotImplementedError(f"{self.name}: still_jump_margin_m set without _jump_pusher")
 
     def _engine_failure(self) -> PushStatus | None:
         """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
@@ -390,14 +427,15 @@ class _PushRun:
 
     def skip_still(self, targets: np.ndarray) -> int:
         """Advance the leading steps of `targets` that cannot move the object, in whole
-        chunks, as one call; the checks they span are those of an object at rest (no
-        failure, no turn; a due frame is a still one). Returns how many were advanced."""
+        chunks, as one call (`Simulator._advance_still`: stepped, or an engine's jump); the
+        checks they span are those of an object at rest (no failure, no turn; a due frame is
+        a still one). Returns how many were advanced."""
         sim, s, chunk = self.sim, self.s, self.chunk
         n = min(sim._steps_still(targets), len(targets)) // chunk * chunk - chunk
         if n <= 0:
             return 0
         pose0 = sim.object_state().pose
-        touched, _ = sim._advance(targets[:n])
+        touched = sim._advance_still(targets[:n])
         after = sim.object_state()
         if touched or after.pose != pose0 or not at_rest(after, s):
             raise RuntimeError(f"{sim.name}: the object moved in steps declared still")
