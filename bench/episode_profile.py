@@ -536,6 +536,40 @@ def cprofile_lines(
     return lines
 
 
+def still_jumps_ab(backend: str, n: int, speed: float, floor: str) -> list[str]:
+    """CPU per episode with the engine's still steps jumped against every step stepped
+    (`still_jump_margin_m` None), the same episodes in one process, alternating which goes
+    first: the host's drift between passes cancels. And how many episode errors agree."""
+    from comexp.experiment.episode import run_episode
+    from comexp.experiment.registry import make_simulator
+
+    sim = make_simulator(backend, **job_backend_options(backend, floor, speed))
+    margin = sim.still_jump_margin_m
+    if margin is None:
+        return [f"{backend} steps every still step: nothing to compare"]
+    specs = strided(job_specs(backend, floor, speed), n)
+    cpu = {True: 0.0, False: 0.0}
+    errors: dict[bool, list] = {True: [], False: []}
+    try:
+        run_episode(specs[0], sim)  # warm-up
+        for k, spec in enumerate(specs):
+            for jumps in (True, False) if k % 2 else (False, True):
+                sim.still_jump_margin_m = margin if jumps else None
+                t0 = time.process_time()
+                r = run_episode(spec, sim)
+                cpu[jumps] += time.process_time() - t0
+                errors[jumps].append(r.error_cm)
+    finally:
+        sim.close()
+    same = sum(a == b for a, b in zip(errors[True], errors[False], strict=True))
+    return [
+        f"== still steps: {backend} {floor} {speed:g} cm/s, {len(specs)} episodes, one process",
+        f"CPU ms/episode  jumped {1e3 * cpu[True] / len(specs):.1f}, stepped "
+        f"{1e3 * cpu[False] / len(specs):.1f}: stepped / jumped {cpu[False] / cpu[True]:.3f}",
+        f"episode errors identical in {same} of {len(specs)}",
+    ]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--backend", choices=("planar", "pybullet", "mujoco"), default="pybullet")
@@ -559,7 +593,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument(
         "--cprofile", type=int, metavar="TOP", help="cProfile the episodes: the TOP functions"
     )
+    ap.add_argument(
+        "--still-jumps",
+        action="store_true",
+        help="engines: CPU with the still steps jumped against stepped, alternating",
+    )
     a = ap.parse_args(argv)
+    if a.still_jumps:
+        with engine_stdout_silenced(not a.engine_output):
+            lines = still_jumps_ab(a.backend, a.episodes, a.speed, a.floor)
+        print("\n".join(lines))
+        return 0
     if a.baseline:
         with engine_stdout_silenced(not a.engine_output):
             lines = compare_baseline(a.backend, a.episodes, a.speed, a.floor, a.baseline)

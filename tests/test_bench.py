@@ -130,6 +130,18 @@ def test_episode_profile_smoke(tmp_path, monkeypatch, capfd):
     assert len(json.loads(dump.read_text())) == 1
 
 
+def test_episode_profile_times_the_still_steps_jumped_against_stepped(monkeypatch, capfd):
+    out = run_bench(
+        "episode_profile.py",
+        *("--backend", "pybullet", "--episodes", "2", "--still-jumps"),
+        monkeypatch=monkeypatch,
+        capfd=capfd,
+    )
+    assert figure(r"stepped / jumped {n}", out) > 0
+    assert figure(r"jumped {n},", out) > 0
+    assert "episode errors identical in" in out
+
+
 def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
     out = run_bench(
         "episode_profile.py",
