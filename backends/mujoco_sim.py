@@ -455,7 +455,7 @@ class _Renderer:
 class MujocoSimulator(Simulator):
     name = "mujoco"
     check_every_steps = 10  # MuJoCo runs this many steps in C between two protocol checks
-    still_jump_margin_m = STILL_JUMPS.margin_m  # still steps jumped, not stepped
+    still_jumps = STILL_JUMPS  # still steps jumped, not stepped
 
     def __init__(
         self,

@@ -206,7 +206,7 @@ class PybulletSimulator(Simulator):
     """pybullet implementation of the simulator interface (see the module docstring)."""
 
     name = "pybullet"
-    still_jump_margin_m = STILL_JUMPS.margin_m  # still steps jumped, not stepped
+    still_jumps = STILL_JUMPS  # still steps jumped, not stepped
 
     def __init__(
         self,

@@ -538,14 +538,14 @@ def cprofile_lines(
 
 def still_jumps_ab(backend: str, n: int, speed: float, floor: str) -> list[str]:
     """CPU per episode with the engine's still steps jumped against every step stepped
-    (`still_jump_margin_m` None), the same episodes in one process, alternating which goes
+    (`still_jumps` None), the same episodes in one process, alternating which goes
     first: the host's drift between passes cancels. And how many episode errors agree."""
     from comexp.experiment.episode import run_episode
     from comexp.experiment.registry import make_simulator
 
     sim = make_simulator(backend, **job_backend_options(backend, floor, speed))
-    margin = sim.still_jump_margin_m
-    if margin is None:
+    jumps_on = sim.still_jumps
+    if jumps_on is None:
         return [f"{backend} steps every still step: nothing to compare"]
     specs = strided(job_specs(backend, floor, speed), n)
     cpu = {True: 0.0, False: 0.0}
@@ -554,7 +554,7 @@ def still_jumps_ab(backend: str, n: int, speed: float, floor: str) -> list[str]:
         run_episode(specs[0], sim)  # warm-up
         for k, spec in enumerate(specs):
             for jumps in (True, False) if k % 2 else (False, True):
-                sim.still_jump_margin_m = margin if jumps else None
+                sim.still_jumps = jumps_on if jumps else None
                 t0 = time.process_time()
                 r = run_episode(spec, sim)
                 cpu[jumps] += time.process_time() - t0

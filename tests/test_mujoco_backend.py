@@ -246,7 +246,7 @@ def test_recording_the_friction_inputs_changes_nothing(sim, monkeypatch):
     assert recorded == plain
     assert 0 < len(rows) < recorded.steps  # the approach and the retract jumped
     assert any(p for *_, p in rows) and not all(p for *_, p in rows)  # touched, then not
-    monkeypatch.setattr(sim, "still_jump_margin_m", None)  # every step stepped
+    monkeypatch.setattr(sim, "still_jumps", None)  # every step stepped
     stepped = _box_push(sim, 0.5, 0.4)
     assert len(rows) == stepped.steps == recorded.steps
 

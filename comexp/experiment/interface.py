@@ -19,6 +19,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -138,9 +139,10 @@ class Simulator(ABC):
     # steps advanced between two failure / rest checks (an engine-specific need: MuJoCo runs a
     # chunk of steps in C between Python checks); part of the protocol's settings
     check_every_steps: int = 5
-    # an engine's jump of still steps (`_steps_still`): the pusher's clearance beyond a step's
-    # length (m) from an object at rest by the settle rule; None: still steps are stepped
-    still_jump_margin_m: float | None = None
+    # an engine's jump of still steps (`_steps_still`): a `StillJumps` (backends/physics_
+    # settings.py: the pusher's clearance beyond a step's length, the most tilt an object at
+    # rest by the settle rule may have); None: still steps are stepped
+    still_jumps: Any = None
 
     def __init__(self, settings: SimSettings | None = None) -> None:
         self.settings = settings or SimSettings()
@@ -211,30 +213,32 @@ class Simulator(ABC):
         which would see the same resting object. 0: unknown, check every chunk.
 
         An engine's object never comes exactly to rest: it creeps and bobs at the contacts'
-        numerical scale. With `still_jump_margin_m` set, an object at rest by the settle rule
-        (`at_rest`) counts as at rest, and the steps in which the pusher stays farther from
-        its outline than the step is long plus that margin (`clear_steps`, beyond the reach
-        of any contact a step could make) are jumped. A backend whose object is exactly at
-        rest (planar) proves it and steps them."""
-        margin = self.still_jump_margin_m
-        if margin is None:
+        numerical scale. With `still_jumps` set, an object at rest by the settle rule
+        (`at_rest`) and flat (tilted less than `max_tilt_deg`: not one falling back from a
+        lift) counts as at rest, and the steps in which the pusher stays farther from its
+        outline than the step is long plus `margin_m` (`clear_steps`, beyond the reach of
+        any contact a step could make) are jumped. A backend whose object is exactly at rest
+        (planar) proves it and steps them."""
+        jumps = self.still_jumps
+        if jumps is None:
             return 0
         st = self.object_state()
-        if not at_rest(st, self.settings):
+        if not at_rest(st, self.settings) or not st.tilt_deg < jumps.max_tilt_deg:
             return 0
         from comexp.experiment.clear_steps import clear_steps
 
         poly = st.pose.to_world(self._outline_m())
         q = self._pusher_xy()
         pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
-        return clear_steps(float(q[0]), float(q[1]), pts, poly, self._pusher_radius_m(), margin)
+        r = self._pusher_radius_m()
+        return clear_steps(float(q[0]), float(q[1]), pts, poly, r, jumps.margin_m)
 
     def _advance_still(self, targets: np.ndarray) -> bool:
         """Advance steps `_steps_still` counted; whether the pusher touched the object. They
-        are stepped, or with `still_jump_margin_m` jumped: time passes, the object's state is
+        are stepped, or with `still_jumps` jumped: time passes, the object's state is
         kept as it is (a resting object stays at rest), the pusher ends on `targets[-1]` as
         stepping would leave it (`_jump_pusher`)."""
-        if self.still_jump_margin_m is None:
+        if self.still_jumps is None:
             return self._advance(targets)[0]
         self._jump_pusher(targets)
         if self.trace is not None:
@@ -243,8 +247,8 @@ class Simulator(ABC):
 
     def _jump_pusher(self, targets: np.ndarray) -> None:
         """Put the pusher where, and moving as, `_advance(targets)` would leave it, without
-        stepping; no contact. A backend that sets `still_jump_margin_m` implements it."""
-        raise NotImplementedError(f"{self.name}: still_jump_margin_m set without _jump_pusher")
+        stepping; no contact. A backend that sets `still_jumps` implements it."""
+        raise NotImplementedError(f"{self.name}: still_jumps set without _jump_pusher")
 
     def _engine_failure(self) -> PushStatus | None:
         """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
