@@ -53,12 +53,12 @@ class StillJumps:
     settle rule and the pusher stays farther from its outline than each step is long plus
     `margin_m`, the engine is not stepped: time passes, the object's state is kept, the
     pusher moves on. An engine's resting object never stops exactly; stepped, it creeps at
-    the contacts' numerical scale (pybullet: up to 0.05 deg in a settle hold). 1 mm is beyond
+    the contacts' numerical scale (`bench/episode_profile.py --still-jumps`). 1 mm is beyond
     any contact a step could make (a 40 cm/s pusher moves 0.4 mm a step), and the protocol
     steps the last chunk before the pusher arrives. Only a flat object: tilted more than
     `max_tilt_deg` it may be falling back from a lift while its floor point is still (MuJoCo,
     a 3 cm hexagon after a 40 cm/s push on mu 1: 0.75 deg); resting, the engines' objects
-    tilt up to 0.027 deg (pybullet) and 0.0006 deg (MuJoCo) where a jump starts."""
+    tilt up to 0.011 deg (pybullet) and 0.0007 deg (MuJoCo) where a jump starts."""
 
     margin_m: float = 1e-3
     max_tilt_deg: float = 0.1

@@ -539,7 +539,9 @@ def cprofile_lines(
 def still_jumps_ab(backend: str, n: int, speed: float, floor: str) -> list[str]:
     """CPU per episode with the engine's still steps jumped against every step stepped
     (`still_jumps` None), the same episodes in one process, alternating which goes
-    first: the host's drift between passes cancels. And how many episode errors agree."""
+    first: the host's drift between passes cancels. Then what the jumps change: how many
+    episode errors agree, the largest difference of a push's true turn between the two (the
+    same push: same contact and direction), and the largest tilt a jump started from."""
     from comexp.experiment.episode import run_episode
     from comexp.experiment.registry import make_simulator
 
@@ -549,7 +551,15 @@ def still_jumps_ab(backend: str, n: int, speed: float, floor: str) -> list[str]:
         return [f"{backend} steps every still step: nothing to compare"]
     specs = strided(job_specs(backend, floor, speed), n)
     cpu = {True: 0.0, False: 0.0}
-    errors: dict[bool, list] = {True: [], False: []}
+    runs: dict[bool, list] = {True: [], False: []}
+    start_tilts: list[float] = []
+    advance_still = sim._advance_still
+
+    def recorded(targets):  # the tilt each jump starts from (one state read a jump)
+        start_tilts.append(sim.object_state().tilt_deg)
+        return advance_still(targets)
+
+    sim._advance_still = recorded
     try:
         run_episode(specs[0], sim)  # warm-up
         for k, spec in enumerate(specs):
@@ -558,15 +568,28 @@ def still_jumps_ab(backend: str, n: int, speed: float, floor: str) -> list[str]:
                 t0 = time.process_time()
                 r = run_episode(spec, sim)
                 cpu[jumps] += time.process_time() - t0
-                errors[jumps].append(r.error_cm)
+                runs[jumps].append(r)
     finally:
         sim.close()
-    same = sum(a == b for a, b in zip(errors[True], errors[False], strict=True))
+    pairs = list(zip(runs[True], runs[False], strict=True))
+    same = sum(a.error_cm == b.error_cm for a, b in pairs)
+    turn = [
+        abs(p.rotation_true_deg - q.rotation_true_deg)
+        for a, b in pairs
+        for p, q in zip(a.pushes, b.pushes, strict=False)
+        if (p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y)
+        == (q.contact_x_cm, q.contact_y_cm, q.dir_x, q.dir_y)
+    ]
     return [
         f"== still steps: {backend} {floor} {speed:g} cm/s, {len(specs)} episodes, one process",
         f"CPU ms/episode  jumped {1e3 * cpu[True] / len(specs):.1f}, stepped "
         f"{1e3 * cpu[False] / len(specs):.1f}: stepped / jumped {cpu[False] / cpu[True]:.3f}",
         f"episode errors identical in {same} of {len(specs)}",
+        f"the same push's true turn, jumped - stepped: max {max(turn, default=0.0):.4f} deg, "
+        f"median {statistics.median(turn) if turn else 0.0:.5f} deg, "
+        f"{sum(t > 0.1 for t in turn)} over 0.1 deg, of {len(turn)} pushes",
+        f"tilt where a jump starts: max {max(start_tilts, default=0.0):.4f} deg over "
+        f"{len(start_tilts)} jumps",
     ]
 
 

@@ -140,6 +140,8 @@ def test_episode_profile_times_the_still_steps_jumped_against_stepped(monkeypatc
     assert figure(r"stepped / jumped {n}", out) > 0
     assert figure(r"jumped {n},", out) > 0
     assert "episode errors identical in" in out
+    assert figure(r"true turn, jumped - stepped: max {n} deg", out) >= 0
+    assert figure(r"tilt where a jump starts: max {n} deg", out) < 0.1  # StillJumps' bound
 
 
 def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):

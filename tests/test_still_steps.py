@@ -90,8 +90,9 @@ def test_a_jump_keeps_the_object_and_moves_the_pusher_without_stepping(sim, monk
 @pytest.mark.parametrize("speed_m_s", [0.04, 0.4])
 def test_a_push_with_its_still_steps_jumped_is_the_stepped_push(sim, monkeypatch, speed_m_s):
     """The same push with every still step stepped: the same outcome, the turn within the
-    creep of a resting engine object (measured: up to 0.05 deg over 16 episodes' pushes;
-    here 1e-12 deg on pybullet, 0.007 - 0.022 on MuJoCo), in 17 - 22% fewer engine steps."""
+    creep of a resting engine object (here 1e-12 deg on pybullet, 0.007 - 0.022 on MuJoCo;
+    over a job's pushes the median is 1e-5 deg, `bench/episode_profile.py --still-jumps`), in
+    17 - 22% fewer engine steps."""
     scene = _box_scene(0.3)
     outline = np.asarray(scene.obj.outline_m)
     contact = scene.initial_pose.to_world(np.array([outline[:, 0].min(), 0.012]))

@@ -2,11 +2,11 @@
 
 The kernels are compiled on first use and cached on disk (`cache=True`). With a cold cache (the
 first job after an install or a kernel edit) every worker would compile them itself, and the
-compiler's memory stays with the worker for the whole job: a pybullet worker holds ~370 MB
-(PSS) instead of ~200, and a 2-worker job goes over 1 GB (`bench/memory.py`). Running one
+compiler's memory stays with the worker for the whole job: a pybullet worker holds ~380 MB
+(PSS) instead of ~240, and a 2-worker job goes over 1 GB (`bench/memory.py`). Running one
 episode of the job in a child process fills the cache; the child exits, its memory goes back to
 the system, and the workers load the compiled kernels from disk. With a warm cache the child
-only loads them (~2 s per backend, once per driver process).
+only loads them (1.0 - 1.3 s per backend, once per driver process).
 
 It runs before Ray starts, so that the compiler's peak does not add to Ray's processes. Only
 for workers on this machine (callers skip it for a cluster, whose nodes have caches of their
@@ -29,7 +29,7 @@ from comexp.experiment.task import EpisodeSpec
 
 log = logging.getLogger("comexp.pool")
 
-WARM_UP_TIMEOUT_S = 600.0  # a cold compile of every kernel: ~30 s on 2 cores (bench/memory.py)
+WARM_UP_TIMEOUT_S = 600.0  # a cold compile of every kernel: 18 - 27 s on 2 cores
 # (backend, options) whose kernels this process has already had compiled
 _warmed: set[str] = set()
 

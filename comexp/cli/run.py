@@ -335,8 +335,9 @@ def _run_todo(
     from comexp.workers.pool import EpisodePool
     from comexp.workers.session import ensure_ray
 
+    options = simulator_options(exp)
     if exp.ray.address is None:  # local workers load the kernels this compiles
-        warm_kernel_cache(exp.backend.name, todo[0], simulator_options(exp))
+        warm_kernel_cache(exp.backend.name, todo[0], options)
     # Ray first: a cluster that cannot be joined leaves no sweep row behind
     # (`probe_resources` has already rejected an address where nothing listens).
     ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
@@ -356,7 +357,7 @@ def _run_todo(
         max_retries=exp.execution.max_retries,
         replace_timeout_s=exp.execution.restart_timeout_s,
         episode_timeout_s=exp.execution.episode_timeout_s,
-        backend_options=simulator_options(exp),
+        backend_options=options,
     )
     with pool:
         stats = run_and_store(
