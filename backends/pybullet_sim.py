@@ -37,6 +37,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from comexp.backends.floor_friction import FootprintFriction
+from comexp.backends.numba_kernels import DirectCall
 from comexp.backends.physics_settings import (
     PYBULLET,
     PYBULLET_PUSHER_AXLE_INERTIA_M2,
@@ -81,8 +82,13 @@ def _import_pybullet_quietly():
 
 
 pb = _import_pybullet_quietly()
+# after the quiet import: the compiled steps' module imports pybullet too
+from comexp.backends.pybullet_steps import client_handle, push_steps  # noqa: E402
+
 _WORLD = pb.WORLD_FRAME
 _ZERO3 = (0.0, 0.0, 0.0)  # (pybullet reads any sequence; this one is never written)
+_NO_RECORD = np.zeros((0, 5))  # push_steps: no friction inputs recorded
+_push_steps_call = DirectCall(push_steps)  # every chunk of the protocol's steps
 
 
 def _fmt(x: float) -> str:
@@ -234,6 +240,11 @@ class PybulletSimulator(Simulator):
         self._proj: list[float] = []
         self._pusher_target = (0.0, 0.0)
         self._pusher_z = 0.0
+        # Bullet's client handle for the compiled steps (`pybullet_steps`), found at the first
+        # build; None: step through pybullet's Python functions
+        self._handle: int | None = None
+        self._handle_checked = False
+        self._slots = np.zeros(2, dtype=np.int64)  # the compiled steps' C out-parameters
 
     # --- construction ---------------------------------------------------------------------
     def _file(self, name: str, text: str) -> str:
@@ -281,6 +292,9 @@ class PybulletSimulator(Simulator):
         self._load_floor(scene.floor, flags)
         self._load_pusher(scene, flags)
         self._load_object(scene.obj, scene.initial_pose, flags)
+        if not self._handle_checked:  # one client for this simulator's life: one handle
+            self._handle_checked = True
+            self._handle = client_handle(c, self._object)
         self._scene = scene
         self._pushed = False
         fl = scene.floor
@@ -568,10 +582,24 @@ class PybulletSimulator(Simulator):
         self._teleport_pusher(xy)
 
     def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+        """The steps of `_step_once`, one per target: with `floor_friction=model` and no
+        `trace`, a whole chunk in one compiled call (`pybullet_steps.push_steps`: the same
+        Bullet commands with the same numbers, the same bits), else from Python."""
         self._require_scene()
         c = self._cid
-        touched = False
         self._orient_pusher(targets[-1])
+        if self._fric is not None and self.trace is None and self._handle is not None:
+            touched = self._compiled_steps(targets)
+        else:
+            touched = self._python_steps(targets)
+        # the tilt alone (the protocol reads the whole state itself right after)
+        _, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
+        roll, pitch, _ = pb.getEulerFromQuaternion(quat)
+        return touched, tilt_deg(roll, pitch)
+
+    def _python_steps(self, targets: np.ndarray) -> bool:
+        c = self._cid
+        touched = False
         model, trace = self._fric is not None, self.trace
         for target in np.asarray(targets, dtype=float).tolist():
             self._pusher_target = target  # where `_step_once` drives the pusher
@@ -585,10 +613,25 @@ class PybulletSimulator(Simulator):
                 )
             if trace is not None:
                 trace.append(self.object_state())
-        # the tilt alone (the protocol reads the whole state itself right after)
-        _, quat = pb.getBasePositionAndOrientation(self._object, physicsClientId=c)
-        roll, pitch, _ = pb.getEulerFromQuaternion(quat)
-        return touched, tilt_deg(roll, pitch)
+        return touched
+
+    def _compiled_steps(self, targets: np.ndarray) -> bool:
+        f = self._fric
+        pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
+        record = _NO_RECORD if f.inputs is None else np.zeros((len(pts), 5))
+        status, touched, pushed = _push_steps_call(
+            self._handle, self._pusher, self._object, self._pusher_z, pts,
+            self.settings.timestep_s, f.geo, f.fs, f.normal, f.dxw, f.dyw, self._pushed,
+            record, self._slots,
+        )  # fmt: skip
+        if status:
+            raise RuntimeError(f"pybullet: a state or contact query failed at step {-status}")
+        self._pushed = bool(pushed)
+        if len(pts):
+            self._pusher_target = (float(pts[-1, 0]), float(pts[-1, 1]))
+        if f.inputs is not None:
+            f.inputs.extend((x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record.tolist())
+        return bool(touched)
 
     def _jump_pusher(self, targets: np.ndarray) -> None:
         """The pusher on its last target at its height, at rest, its axle as it was: the next

@@ -129,7 +129,7 @@ def test_free_rigid_pusher_keeps_its_height_and_orientation(sim):
 
 
 @pytest.mark.parametrize("mu_pusher", [0.5, 1.0])
-def test_the_pusher_carries_none_of_the_objects_weight(sim, mu_pusher):
+def test_the_pusher_carries_none_of_the_objects_weight(sim, mu_pusher, monkeypatch):
     """While a pusher pushes 1 cm beside the CoM, the floor carries the whole weight: the model's
     pusher friction acts in the floor's plane only. (Bullet takes a contact's friction direction
     from the pre-solve slip, gravity included: a pusher held up against the object's in-step fall
@@ -143,6 +143,7 @@ def test_the_pusher_carries_none_of_the_objects_weight(sim, mu_pusher):
     cmd = contact_push(contact, n, 0.03, 0.4, 0.005)
     weight = obj.mass_kg * 9.81
     shares = []
+    monkeypatch.setattr(sim, "_handle", None)  # stepped from Python, where steps can be watched
     original = sim._step_once
 
     def step():
@@ -161,3 +162,94 @@ def test_the_pusher_carries_none_of_the_objects_weight(sim, mu_pusher):
     assert min(after_impact) > 0.99 and max(after_impact) < 1.01, (
         f"the floor carried {min(after_impact):.3f}..{max(after_impact):.3f} of the weight"
     )
+
+
+def _box_push(sim, mu: float, speed: float):
+    """An off-CoM push of an 8 x 5 cm box on its -x face (it turns and slides)."""
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.5)
+    pose = Pose2D(0.0, 0.0, 0.3)
+    sim.build(SceneSpec(FloorSpec(mu, 0.5 * mu), obj, initial_pose=pose))
+    contact = pose.to_world(np.array([-0.04, 0.012]))
+    normal = (math.cos(0.3), math.sin(0.3))
+    return sim.push(contact_push(contact, normal, 0.03, speed, 0.005))
+
+
+@pytest.fixture()
+def model_sim():
+    s = make_simulator("pybullet")  # floor_friction=model: the compiled steps
+    yield s
+    s.close()
+
+
+def test_the_compiled_steps_are_used_here(model_sim):
+    """On Linux, with pybullet's wheel, Bullet's client handle is found and checked: the
+    comparisons below compare two paths, not one path with itself."""
+    _box_push(model_sim, 0.5, 0.4)
+    assert model_sim._handle is not None
+
+
+@pytest.mark.parametrize("mu, speed", [(0.1, 0.4), (1.0, 0.04)])
+def test_the_compiled_steps_are_the_python_steps(model_sim, monkeypatch, mu, speed):
+    """A chunk of steps in one compiled call (pybullet_steps.push_steps) sends Bullet the
+    commands `_step_once` sends through pybullet's Python functions: the same push, its
+    friction inputs and its end state to the bit, an impact and a slide (mu 0.1, 40 cm/s)
+    and a sustained push (mu 1, 4 cm/s)."""
+    runs = []
+    for handle in (model_sim._handle, None):
+        if handle is None:
+            monkeypatch.setattr(model_sim, "_handle", None)
+        rows: list = []
+        real_build = model_sim.build
+
+        def build(scene, rows=rows, real_build=real_build):
+            real_build(scene)
+            model_sim._fric.inputs = rows
+
+        monkeypatch.setattr(model_sim, "build", build)
+        out = _box_push(model_sim, mu, speed)
+        runs.append((out, rows, model_sim.object_state(), model_sim._pusher_xy().tolist()))
+    (compiled, rows_c, end_c, q_c), (python, rows_p, end_p, q_p) = runs
+    assert compiled.ok and compiled.contact_made and abs(compiled.true_rotation_deg) > 1.0
+    assert compiled == python and end_c == end_p and q_c == q_p
+    assert len(rows_c) > 100 and rows_c == rows_p
+
+
+def test_the_yaw_is_pybullets_to_the_bit():
+    """The compiled steps' yaw is getEulerFromQuaternion's, both branches near +-90 deg of
+    pitch included."""
+    from comexp.backends.pybullet_steps import yaw_of_quaternion
+
+    rng = np.random.default_rng(7)
+    quats = rng.normal(size=(3000, 4))
+    pitched = [pb.getQuaternionFromEuler([0.3, s * (math.pi / 2 - e), 1.1]) for s in (1, -1)
+               for e in (0.0, 1e-4, 1e-2)]  # fmt: skip
+    for q in [*(quats / np.linalg.norm(quats, axis=1)[:, None]).tolist(), *pitched]:
+        assert yaw_of_quaternion(*q) == pb.getEulerFromQuaternion(q)[2]
+
+
+def test_without_the_handle_the_steps_run_from_python(monkeypatch):
+    """A pybullet library whose client table cannot be found (a stripped or another build)
+    leaves the backend on pybullet's Python functions, with the same push."""
+    from comexp.backends import pybullet_steps
+
+    with make_simulator("pybullet") as found:
+        want = _box_push(found, 0.5, 0.4)
+    monkeypatch.setattr(pybullet_steps, "_clients_table_address", lambda: None)
+    with make_simulator("pybullet") as s:
+        got = _box_push(s, 0.5, 0.4)
+        assert s._handle is None
+    assert got == want
+    assert pybullet_steps._elf_symbol_values(__file__, {"b3CanSubmitCommand"}) == {}
+
+
+def test_a_failed_query_in_the_compiled_steps_raises(model_sim):
+    """A state query Bullet refuses (here: no such body) stops the chunk with an error
+    naming the step, as pybullet's own function raises."""
+    _box_push(model_sim, 0.5, 0.4)
+    real = model_sim._object
+    model_sim._object = 999
+    try:
+        with pytest.raises(RuntimeError, match="failed at step 1"):
+            model_sim._compiled_steps(np.zeros((3, 2)))
+    finally:
+        model_sim._object = real
