@@ -56,6 +56,7 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
     push_steps,
     pusher_touching,
 )
+from comexp.backends.numba_kernels import DirectCall  # noqa: E402
 from comexp.backends.physics_settings import (  # noqa: E402
     DEFAULT_CONTACT,
     MUJOCO,
@@ -77,6 +78,7 @@ from comexp.method.scene import (  # noqa: E402
 
 _PARK_XY_M = (3.0, 3.0)  # far outside the floor and the camera frustum
 _NO_RECORD = np.zeros((0, 5))  # push_steps: no friction inputs recorded
+_push_steps_call = DirectCall(push_steps)  # every chunk of the protocol's steps
 _UNSTABLE_WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQACC,
     mujoco.mjtWarning.mjWARN_BADQVEL,
@@ -454,7 +456,6 @@ class _Renderer:
 
 class MujocoSimulator(Simulator):
     name = "mujoco"
-    check_every_steps = 10  # MuJoCo runs this many steps in C between two protocol checks
     still_jumps = STILL_JUMPS  # still steps jumped, not stepped
 
     def __init__(
@@ -665,7 +666,7 @@ class MujocoSimulator(Simulator):
         qpos, qvel, xipos, xfrc, sensordata = self._views
         f = self._fric
         record = _NO_RECORD if f.inputs is None else np.zeros((len(starts), 5))
-        out = push_steps(
+        out = _push_steps_call(
             m._address, d._address, self.contact.substeps, qpos, qvel, xipos, xfrc,
             sensordata, self._sensor_adr, self._obj_qadr, self._obj_vadr, self._px_qadr,
             self._px_vadr, self._obj_body, self._com_local, starts, vels, f.geo, f.fs,

@@ -21,7 +21,12 @@ import hashlib
 from pathlib import Path
 from types import ModuleType
 
+from numba import types
 from numba.core.dispatcher import Dispatcher
+
+# C's memcpy(dst, src, n) for compiled code that reads or writes an engine's memory by address
+# (pointers as integers: the same registers in the x86-64 and AArch64 C ABIs)
+c_memcpy = types.ExternalFunction("memcpy", types.intp(types.intp, types.intp, types.intp))
 
 
 class DirectCall:

@@ -379,6 +379,7 @@ class PlanarModel:
         self.m = obj.mass_kg
         self.M = self.fr.M
         self.com = self.fr.com
+        self.com_xy = (float(self.com[0]), float(self.com[1]))
         self.outline = np.asarray(obj.outline_m, dtype=float)
         self.h_com = self.fr.h_com
         self.z_push = self.fr.z_push
@@ -476,20 +477,26 @@ _NO_TRACE = np.zeros((0, TRACE_COLS))
 _STILL_MARGIN_M = 1e-4
 
 
-def _object_state(com: np.ndarray, g, yaw: float, xi, tilt=(0.0, (1.0, 0.0), (0.0, 0.0))):
-    """The interface's state of the object frame from the model's CoM state. `tilt` is the
+_FLAT = (0.0, (1.0, 0.0), (0.0, 0.0))  # `_model_tilt` of an object flat on the floor
+
+
+def _object_state(com: tuple[float, float], g, yaw: float, xi, tilt=_FLAT):
+    """The interface's state of the object frame from the model's CoM state (floats, read
+    once per state: the protocol asks for it after every chunk of steps). `tilt` is the
     pitch (rad), the object-frame direction it tilts toward (the edge's outward normal) and
     its rate as a world angular velocity's x, y; roll and pitch (ZYX) tilt the body's z axis
     by that angle toward that direction."""
     c, s = math.cos(yaw), math.sin(yaw)
-    # origin -> CoM by numpy's matmul, not in scalars: it rounds differently (fused multiply-
-    # adds), and the states the protocol checks must stay those of the results on record
-    r0, r1 = (np.array([[c, -s], [s, c]]) @ com).tolist()
+    cx, cy = com
+    r0, r1 = c * cx - s * cy, s * cx + c * cy  # origin -> CoM
     g0, g1 = float(g[0]), float(g[1])
     v0, v1, w = float(xi[0]), float(xi[1]), float(xi[2])
     theta, (nx, ny), (wx, wy) = tilt
-    roll = math.asin(max(-1.0, min(1.0, -math.sin(theta) * ny)))
-    pitch = math.atan2(math.sin(theta) * nx, math.cos(theta))
+    if theta == 0.0:  # what the two lines below give for no tilt
+        roll, pitch = -0.0, 0.0
+    else:
+        roll = math.asin(max(-1.0, min(1.0, -math.sin(theta) * ny)))
+        pitch = math.atan2(math.sin(theta) * nx, math.cos(theta))
     return ObjectState(
         position_m=(g0 - r0, g1 - r1, 0.0),
         roll_rad=roll,
@@ -503,7 +510,7 @@ def _object_state(com: np.ndarray, g, yaw: float, xi, tilt=(0.0, (1.0, 0.0), (0.
 def _model_tilt(m: PlanarModel) -> tuple:
     """`_object_state`'s tilt of the model's current state."""
     if m.flat:
-        return (0.0, (1.0, 0.0), (0.0, 0.0))
+        return _FLAT
     return (m.tilt_rad, tuple(m.tilt_direction()), m.tilt_axis_rate())
 
 
@@ -511,7 +518,7 @@ class PlanarSimulator(Simulator):
     """`backend=planar`: the reference model behind the shared simulator interface."""
 
     name = "planar"
-    check_every_steps = 10  # the protocol's chunk (as MuJoCo's): two slow steps (`SlowSteps`)
+    # the protocol's chunk of 10 steps (`Simulator.check_every_steps`): two slow steps
 
     def __init__(
         self,
@@ -544,7 +551,8 @@ class PlanarSimulator(Simulator):
     # --- state -----------------------------------------------------------------------------
     def object_state(self) -> ObjectState:
         m = self._require()
-        return _object_state(m.com, m.g, m.yaw, m.xi, _model_tilt(m))
+        state = m.ms[: XI_W + 1].tolist()  # CoM x, y, yaw, twist
+        return _object_state(m.com_xy, state[:2], state[2], state[3:], _model_tilt(m))
 
     def set_object_velocity(self, linear_m_s, angular_rad_s) -> None:
         m = self._require()
@@ -594,7 +602,7 @@ class PlanarSimulator(Simulator):
         for r in rows[:taken]:
             n = tuple(m.tilt_direction()) if r[6] != 0.0 else (1.0, 0.0)
             tilt = (float(r[6]), n, (float(r[7]), float(r[8])))
-            self.trace.append(_object_state(m.com, r[0:2], float(r[2]), r[3:6], tilt))
+            self.trace.append(_object_state(m.com_xy, r[0:2], float(r[2]), r[3:6], tilt))
         if len(targets):
             self._q = targets[-1].copy()
         return touched, math.degrees(m.ms[PITCH_MAX])

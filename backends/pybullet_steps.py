@@ -37,7 +37,7 @@ from numba import njit, types
 
 from comexp.backends import floor_friction
 from comexp.backends.floor_friction import impulse_kernel
-from comexp.backends.numba_kernels import stamp_with_sources
+from comexp.backends.numba_kernels import c_memcpy, stamp_with_sources
 
 # pybullet's table of client handles (pybullet.c: `static b3PhysicsClientHandle
 # sPhysicsClients1[MAX_PHYSICS_CLIENTS]`) and an exported function to locate it by
@@ -163,9 +163,6 @@ _contacts_body_b = types.ExternalFunction("b3SetContactFilterBodyB", types.void(
 _contacts_get = types.ExternalFunction("b3GetContactPointInformation", types.void(_p, _p))
 
 
-_copy_from = types.ExternalFunction("memcpy", _p(_p, _p, _p))
-
-
 @njit(cache=True)
 def _base_state_kernel(h, body, out, slots):
     """out[:7] = the body's base position and orientation (x, y, z, w), out[7:13] its linear
@@ -178,8 +175,8 @@ def _base_state_kernel(h, body, out, slots):
     _state_get(status, 0, 0, 0, 0, slots.ctypes.data, slots.ctypes.data + 8, 0)
     q = np.empty(7)
     qd = np.empty(6)
-    _copy_from(q.ctypes.data, slots[0], 56)
-    _copy_from(qd.ctypes.data, slots[1], 48)
+    c_memcpy(q.ctypes.data, slots[0], 56)
+    c_memcpy(qd.ctypes.data, slots[1], 48)
     for k in range(7):
         out[k] = q[k]
     for k in range(6):

@@ -15,8 +15,10 @@ slice, vision and the default camera):
   the still ones, `Simulator._steps_still`: `PushOutcome.steps` counts those too);
 - **the engine's step in pushes**: the engine's own step call alone, no Python of ours
   around it, in the states the pushes drive it through (`EngineStepsInPushes`: pybullet's
-  `stepSimulation` calls timed one by one; MuJoCo's chunks replayed from their saved states
-  as `mj_step(m, d, n)`; planar's compiled chunks, `_run`, timed one by one: its friction
+  compiled chunks, `push_steps`, timed one by one, the friction kernel's replay taken off:
+  Bullet's step with the C commands that drive it (from Python, without the compiled steps:
+  its `stepSimulation` calls); MuJoCo's chunks replayed from their saved states as
+  `mj_step(m, d, n)`; planar's compiled chunks, `_run`, timed one by one: its friction
   solve is inside its step), in a second run of each episode right after its timed one
   (builds are full resets, so it takes the same steps). Beside it, the same call on each
   episode's built scene at rest (object resting, pusher parked): a pusher contact and a
@@ -190,8 +192,10 @@ class EngineStepsInPushes:
     """The engine's own step as the pushes drive it (contacts with the pusher, a sliding
     object), not only on a resting scene: what `raw_step_s` cannot see.
 
-    pybullet: every `stepSimulation` call of a pass is timed on the thread's CPU clock (the
-    clock's own cost, calibrated, is taken off each call). MuJoCo's steps run inside the
+    pybullet: every compiled chunk (`push_steps`) of a pass is timed on the thread's CPU
+    clock (the clock's own cost, calibrated, is taken off each call); the friction kernel
+    runs inside it (`kernel_inside`: the caller takes the kernel's replay off); stepped
+    from Python (no client handle), every `stepSimulation` call. MuJoCo's steps run inside the
     compiled loop, where no timer reaches: before every chunk of the pass the engine's
     integration state is saved (`mj_getState`), and after each episode, while its model is
     still built, every chunk is replayed from its state as one `mj_step(m, d, n)` (the pusher
@@ -203,6 +207,7 @@ class EngineStepsInPushes:
         self.steps = 0
         self._snaps: list[tuple[np.ndarray, int]] = []
         self._in_push = False
+        self.kernel_inside = False  # the timed calls run the friction kernel too
 
     def _timed_in_pushes(self, step: Any, steps_of: Any) -> Any:
         """`step` timed call by call on the thread's CPU clock (its own cost, calibrated,
@@ -237,7 +242,14 @@ class EngineStepsInPushes:
 
     def __enter__(self) -> EngineStepsInPushes:
         sim = self.sim
-        if sim.name == "pybullet":
+        if sim.name == "pybullet" and getattr(sim, "_handle", None) is not None:
+            from comexp.backends import pybullet_sim
+
+            # push_steps(handle, pusher, object, z, targets, ...): a step per target
+            self._pbsim, self._step = pybullet_sim, pybullet_sim._push_steps_call
+            pybullet_sim._push_steps_call = self._timed_in_pushes(self._step, lambda a: len(a[4]))
+            self.kernel_inside = True
+        elif sim.name == "pybullet":
             import pybullet as pb
 
             self._pb, self._step = pb, pb.stepSimulation
@@ -287,7 +299,10 @@ class EngineStepsInPushes:
             self.sim.push = self._own_push  # type: ignore[method-assign]
 
     def __exit__(self, *exc: object) -> None:
-        if self.sim.name == "pybullet":
+        if self.sim.name == "pybullet" and self.kernel_inside:
+            self._pbsim._push_steps_call = self._step
+            self._restore_push()
+        elif self.sim.name == "pybullet":
             self._pb.stepSimulation = self._step
             self._restore_push()
         elif self.sim.name == "planar":
@@ -330,7 +345,8 @@ def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[
                 engine.replay()
             ks, kn = rec.replay_s(sim.settings.timestep_s)
             kernel_s, kernel_n = kernel_s + ks, kernel_n + kn
-            engine_s, engine_steps = engine_s + engine.s, engine_steps + engine.steps
+            inside = ks if engine.kernel_inside else 0.0  # timed with the engine's steps
+            engine_s, engine_steps = engine_s + engine.s - inside, engine_steps + engine.steps
         for name in ("push", "render_depth", "render_tracking_depth"):
             delattr(sim, name)  # back to the class's methods
         raws = [raw_step_s(sim, s, raw_n) for s in strided(specs, min(4, len(specs)))]

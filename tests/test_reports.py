@@ -225,6 +225,18 @@ def test_rows_stored_before_the_frame_rule_are_labelled_every_frame() -> None:
     assert len(labels) == 2 and any("track_step_deg=0" in t for t in labels)
 
 
+def test_rows_stored_before_the_driving_frame_rule_are_labelled_every_driving_frame() -> None:
+    """A row stored before `track_drive_mm` existed tracked every frame while the pusher
+    drove: it is labelled `track_drive_mm=0`, not shown as a row of today's default."""
+    from comexp.results.identity import canonical_json
+    from comexp.results.reports import estimator_changes
+
+    new = json.loads(canonical_json(EstimatorSettings()))
+    old = {k: v for k, v in new.items() if k != "track_drive_mm"}
+    assert estimator_changes(json.dumps(old)) == {"track_drive_mm": 0.0}
+    assert estimator_changes(json.dumps({**new, "track_drive_mm": 0.0})) == {"track_drive_mm": 0.0}
+
+
 def test_group_episodes_pools_only_what_it_is_told(study_db: ResultsDB) -> None:
     rows = study_db.episodes()
     groups = group_episodes(rows, PAPER_POOL)

@@ -150,8 +150,11 @@ def test_after_a_still_frame_the_tracker_predicts_from_rest():
     assert tracker.predicted_yaw(0.5) == pytest.approx(0.1)
 
 
-def _tracked_big_turn(step_deg: float, gap_s: float = 0.1):
-    """The -121 deg turn, tracked at 30 fps with the frame rule (`PoseTracker.wants_frame`):
+def _tracked_big_turn(
+    step_deg: float, gap_s: float = 0.1, speed_m_s: float = 0.4, drive_mm: float = 0.0
+):
+    """The -121 deg turn (at 40 cm/s), tracked at 30 fps with the frame rule
+    (`PoseTracker.wants_frame`, a frame while driving every `drive_mm` of the pusher's travel):
     the push's outcome, the final fit's yaw (deg), and each offered frame's (t_s, driving,
     rendered)."""
     sim = make_simulator("planar")
@@ -162,7 +165,7 @@ def _tracked_big_turn(step_deg: float, gap_s: float = 0.1):
     offered: list[list] = []
 
     def wanted(t_s: float, driving: bool) -> bool:
-        take = tracker.wants_frame(t_s, driving, step_deg, gap_s)
+        take = tracker.wants_frame(t_s, driving, step_deg, gap_s, drive_mm / 1000 / speed_m_s)
         offered.append([t_s, driving, False])
         return take
 
@@ -172,7 +175,7 @@ def _tracked_big_turn(step_deg: float, gap_s: float = 0.1):
         img = mask_pusher(f.image, f.pusher_xy_m, f.pusher_radius_m)
         tracker.track(observe_boundary(img, (tracker.last.x_m, tracker.last.y_m)), f.t_s)
 
-    cmd = contact_push((-0.04, 0.02), (1.0, 0.0), 0.03, 0.4, 0.005)
+    cmd = contact_push((-0.04, 0.02), (1.0, 0.0), 0.03, speed_m_s, 0.005)
     out = sim.push(cmd, on_frame, 1 / 30, on_still=tracker.hold, frame_wanted=wanted)
     return out, math.degrees(tracker.fit(observe(sim.render_depth())).pose.yaw_rad), offered, cmd
 
@@ -197,6 +200,24 @@ def test_once_the_pusher_stops_frames_are_tracked_where_the_turn_needs_them():
     assert yaw_every == pytest.approx(every.true_rotation_deg, abs=2.0)
 
 
+def test_while_driving_a_frame_comes_with_the_pushers_travel():
+    """`track_drive_mm` (4 mm): at 40 cm/s the pusher travels that in 10 ms, less than a
+    frame's 33 ms, so every driving frame is tracked (the same frames as without it); at
+    4 cm/s a driving frame is tracked every 0.1 s, fewer frames, the same turn measured."""
+    every, _, offered_every, _ = _tracked_big_turn(10.0)
+    rule, _, offered_rule, _ = _tracked_big_turn(10.0, drive_mm=4.0)
+    assert offered_rule == offered_every and rule == every
+    slow_every, yaw_every, offered_every, _ = _tracked_big_turn(10.0, speed_m_s=0.04)
+    slow, yaw, offered, _ = _tracked_big_turn(10.0, speed_m_s=0.04, drive_mm=4.0)
+    assert (slow.pose_after, slow.steps) == (slow_every.pose_after, slow_every.steps)
+    assert abs(slow.true_rotation_deg) > 15.0  # it turns, all the while the pusher drives
+    driving = [t for t, d, r in offered if d and r]
+    assert 0 < len(driving) < 0.5 * sum(1 for _, d, r in offered_every if d and r)
+    assert all(b - a <= 0.1 + 1e-9 for a, b in zip(driving, driving[1:], strict=False))
+    assert yaw == pytest.approx(yaw_every, abs=0.05)
+    assert yaw == pytest.approx(slow.true_rotation_deg, abs=2.0)
+
+
 def test_the_frame_rule_takes_a_frame_at_the_predicted_step_or_the_gap():
     sim = make_simulator("planar")
     sim.build(replace(build_scene(box_spec()), initial_pose=Pose2D(0.0, 0.0, 0.0)))
@@ -209,13 +230,19 @@ def test_the_frame_rule_takes_a_frame_at_the_predicted_step_or_the_gap():
     assert tracker.wants_frame(step_t + 0.005, False, 10.0, 0.5)
     assert tracker.wants_frame(0.2, False, 10.0, 0.1)  # the gap
     assert not tracker.wants_frame(0.19, False, 10.0, 0.1)
-    assert tracker.wants_frame(0.11, True, 10.0, 0.5)  # the pusher drives
+    assert tracker.wants_frame(0.11, True, 10.0, 0.5)  # the pusher drives: every frame
+    assert tracker.wants_frame(0.11, True, 10.0, 0.5, 0.01)  # ... or once it travelled
+    assert not tracker.wants_frame(0.105, True, 10.0, 0.5, 0.01)
     assert tracker.wants_frame(0.11, False, 0.0, 0.5)  # step 0: every frame
     tracker._history[-1] = (0.1, 0.0)  # not turning: only the gap asks for a frame
     assert not tracker.wants_frame(0.19, False, 10.0, 0.1)
+    assert not tracker.wants_frame(0.19, True, 10.0, 0.1, 0.1)  # nor while driving slowly
+    assert tracker.wants_frame(0.2, True, 10.0, 0.1, 0.1)
 
 
-@pytest.mark.parametrize("knob,value", [("track_step", -1.0), ("track_gap", 0.0)])
+@pytest.mark.parametrize(
+    "knob,value", [("track_step", -1.0), ("track_gap", 0.0), ("track_drive", -1.0)]
+)
 def test_frame_rule_knobs_are_checked(knob, value):
     with pytest.raises(ConfigError, match=f"estimator.{knob}"):
         prepare_job(_compose(f"estimator.{knob}={value}"))

@@ -147,6 +147,7 @@ class EstimatorConfig:
     rotation_source: str = _EST.rotation_source  # vision | oracle
     track_step: float = _EST.track_step_deg  # deg
     track_gap: float = _EST.track_gap_s  # s
+    track_drive: float = _EST.track_drive_mm  # mm
     d_metric: str = _EST.d_metric
     d_signed: bool = _EST.d_signed
     cos_signed: bool = _EST.cos_signed
@@ -170,6 +171,7 @@ SETTINGS_FIELDS: dict[str, str] = {
     "rotation_source": "rotation_source",
     "track_step": "track_step_deg",
     "track_gap": "track_gap_s",
+    "track_drive": "track_drive_mm",
     "d_metric": "d_metric",
     "d_signed": "d_signed",
     "cos_signed": "cos_signed",

@@ -202,13 +202,15 @@ class _EpisodeLoop:
             self.path.append((f.t_s, tracker.last))
             used += 1
 
+        # while driving, a frame once the pusher has travelled track_drive_mm since the last
+        drive_gap_s = settings.track_drive_mm / 1000.0 / cmd.speed_m_s
         out = self.sim.push(
             cmd,
             on_frame=on_frame,
             frame_interval_s=1.0 / self.spec.camera_fps,
             on_still=tracker.hold,
             frame_wanted=lambda t_s, driving: tracker.wants_frame(
-                t_s, driving, settings.track_step_deg, settings.track_gap_s
+                t_s, driving, settings.track_step_deg, settings.track_gap_s, drive_gap_s
             ),
         )
         return out, used

@@ -136,9 +136,10 @@ class Simulator(ABC):
     """
 
     name: str = ""
-    # steps advanced between two failure / rest checks (an engine-specific need: MuJoCo runs a
-    # chunk of steps in C between Python checks); part of the protocol's settings
-    check_every_steps: int = 5
+    # steps advanced between two failure / rest checks: 10 ms for every built-in backend (each
+    # runs a chunk of steps in one compiled call between the protocol's checks in Python); a
+    # plug-in backend may take another; part of the protocol's settings
+    check_every_steps: int = 10
     # an engine's jump of still steps (`_steps_still`): a `StillJumps` (backends/physics_
     # settings.py: the pusher's clearance beyond a step's length, the most tilt an object at
     # rest by the settle rule may have); None: still steps are stepped
@@ -494,7 +495,8 @@ class _PushRun:
             targets = path[k : k + chunk]
             self.run(targets, driving=True)
             k += len(targets)
-            self.lag = max(self.lag, float(np.linalg.norm(self.sim._pusher_xy() - targets[-1])))
+            dx, dy = (self.sim._pusher_xy() - targets[-1]).tolist()
+            self.lag = max(self.lag, math.hypot(dx, dy))
 
     def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
         """2) Hold the pusher still; at rest = the object frame's floor point and yaw below

@@ -220,24 +220,29 @@ class PoseTracker:
         rate = (y1 - y0) / (t1 - t0) if t1 > t0 else 0.0
         return y1 + rate * (t_s - t1)
 
-    def wants_frame(self, t_s: float, driving: bool, step_deg: float, gap_s: float) -> bool:
+    def wants_frame(
+        self, t_s: float, driving: bool, step_deg: float, gap_s: float, drive_gap_s: float = 0.0
+    ) -> bool:
         """Whether the camera frame `t_s` into the push is worth tracking (skipped ones are
         not even rendered in simulation: `Simulator.push(frame_wanted=...)`).
 
-        While the pusher drives, every frame: the fastest turns of the study (40-55 deg within
-        a 75 ms push on a high-friction floor) happen in contact, where the rate changes
-        abruptly. Once the pusher stops, the object slides under floor friction alone, and a
-        frame is needed when the constant-rate prediction from the last two frames has it
-        turned `step_deg` since the last one, or `gap_s` after it at the latest: friction
-        can also speed a turn up (the load shifts as the object slides), and an angular
-        acceleration alpha the prediction misses adds alpha gap^2 / 2 (docs/method.md
-        measures the turn beyond the prediction with and without the cap). `step_deg` <= 0:
-        every frame.
+        A frame is needed when the constant-rate prediction from the last two frames has the
+        object turned `step_deg` since the last one, or `gap_s` after it at the latest:
+        friction can also speed a turn up (the load shifts as the object slides), and an
+        angular acceleration alpha the prediction misses adds alpha gap^2 / 2 (docs/method.md
+        measures the turn beyond the prediction with and without the cap). While the pusher
+        drives, at the latest `drive_gap_s` after the last one (the time it takes to travel
+        `track_drive_mm`): in contact the rate changes abruptly, and how far the object turns
+        goes with how far the pusher moves. At 40 cm/s that is every frame (the study's
+        fastest turns, 40-55 deg within a 75 ms push on a high-friction floor, happen in
+        contact); at 4 cm/s every 0.1 s, in which the object turns 12 deg at most
+        (docs/method.md). `step_deg` <= 0: every frame; `drive_gap_s` <= 0: every frame
+        while the pusher drives.
         """
-        if driving or step_deg <= 0.0 or len(self._history) < 2:
+        if step_deg <= 0.0 or len(self._history) < 2 or (driving and drive_gap_s <= 0.0):
             return True
         t1, y1 = self._history[-1]
-        if t_s - t1 >= gap_s - 1e-9:
+        if t_s - t1 >= (min(gap_s, drive_gap_s) if driving else gap_s) - 1e-9:
             return True
         return abs(self.predicted_yaw(t_s) - y1) >= math.radians(step_deg)
 

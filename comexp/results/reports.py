@@ -119,7 +119,8 @@ def _sortable(v: Any) -> tuple[int, Any]:
 
 # What an episode stored before a knob existed ran with, where that differs from the knob's
 # default: such rows are labelled with it, so that they are told apart from new rows.
-LEGACY_ESTIMATOR: dict[str, Any] = {"track_step_deg": 0}  # before f0e1013: every frame
+# before f0e1013: every frame; before track_drive_mm: every frame while the pusher drove
+LEGACY_ESTIMATOR: dict[str, Any] = {"track_step_deg": 0, "track_drive_mm": 0.0}
 
 
 def estimator_changes(estimator_json: str) -> dict[str, Any]:
