@@ -160,12 +160,18 @@ def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
 
 
 def test_step_cost_smoke(monkeypatch, capfd):
+    """pybullet's engine step is its compiled chunk (`_push_steps_call`) timed in the pushes,
+    less the friction kernel's replay; the module's call is put back afterwards."""
+    from comexp.backends import pybullet_sim
+
+    call = pybullet_sim._push_steps_call
     out = run_bench(
         "step_cost.py",
         *("--backend", "pybullet", "--episodes", "1", "--raw-steps", "20"),
         monkeypatch=monkeypatch,
         capfd=capfd,
     )
+    assert pybullet_sim._push_steps_call is call
     step = figure(r"step inside a push\s+{n} us", out)
     parts = [figure(rf"{k}\s+{{n}} us", out) for k in ("engine's step", "friction kernel")]
     assert step > 0 and all(p > 0 for p in parts)
