@@ -10,12 +10,15 @@ Python functions, in the same order with the same numbers, so the results are th
 bit (tests/test_pybullet_backend.py).
 
 How: the pybullet extension module is also Bullet's C client library (`b3*` functions, exported
-by name and declared here as external functions, resolved when the compiled code is loaded).
-What those functions need is the client handle pybullet keeps for a `physicsClientId`, in its
-module-private table `sPhysicsClients1` (examples/pybullet/pybullet.c): `client_handle` reads
-it at the address the library's ELF symbol table gives for that table, relative to an
-exported function's. Where that cannot be found or checked (a stripped or another build, not
-Linux), `client_handle` returns None and the backend steps from Python as before.
+by name, declared here as external functions and bound to the module's own addresses for the
+compiled code alone: the library is not made global, so its bundled C++ runtime cannot
+interpose on libraries loaded later). What those functions need is the client handle
+pybullet keeps for a `physicsClientId`, in its module-private table `sPhysicsClients1`
+(examples/pybullet/pybullet.c): `client_handle` reads it at the address the library's ELF
+symbol table gives for that table, relative to an exported function's, once it has checked
+that the file it read is the library loaded and the table has pybullet's size. Where that
+cannot be found or checked (a stripped, replaced or another build, not Linux),
+`client_handle` returns None and the backend steps from Python as before.
 
 What is given up: a Bullet command that fails is reported by its status, as pybullet's Python
 functions check it (the state and contact queries), and the chunk raises; Bullet's own fatal
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 import struct
 import sys
 from functools import lru_cache
@@ -45,22 +49,32 @@ _CLIENTS_SYMBOL = "sPhysicsClients1"
 _ANCHOR_SYMBOL = "b3CanSubmitCommand"
 _MAX_PHYSICS_CLIENTS = 1024  # pybullet.c's MAX_PHYSICS_CLIENTS
 
-# status types and flags (SharedMemoryPublic.h, Bullet 3.2.7 as pybullet 3.2.7 ships it;
-# tests/test_pybullet_backend.py checks them against the library's answers)
+# status types and flags (SharedMemoryPublic.h, Bullet 3.2.7 as pybullet 3.2.7 ships it): a
+# wrong state status fails the handle's check, a wrong contact status every compiled push
+# (tests/test_pybullet_backend.py); the frame flag is pybullet's WORLD_FRAME (tested)
 CMD_ACTUAL_STATE_UPDATE_COMPLETED = 21
-CMD_STEP_FORWARD_SIMULATION_COMPLETED = 26
 CMD_CONTACT_POINT_INFORMATION_COMPLETED = 39
 EF_WORLD_FRAME = 2
+# the C functions the compiled steps call, bound by address (`_bind_functions`)
+_C_FUNCTIONS = (
+    "b3CanSubmitCommand", "b3SubmitClientCommandAndWaitStatus", "b3GetStatusType",
+    "b3InitStepSimulationCommand", "b3RequestActualStateCommandInit", "b3GetStatusActualState",
+    "b3CreatePoseCommandInit", "b3CreatePoseCommandSetBasePosition",
+    "b3CreatePoseCommandSetBaseOrientation", "b3CreatePoseCommandSetBaseLinearVelocity",
+    "b3CreatePoseCommandSetBaseAngularVelocity", "b3ApplyExternalForceCommandInit",
+    "b3ApplyExternalForce", "b3ApplyExternalTorque", "b3InitRequestContactPointInformation",
+    "b3SetContactFilterBodyA", "b3SetContactFilterBodyB", "b3GetContactPointInformation",
+)  # fmt: skip
 
 _ELF_MAGIC = b"\x7fELF"
 _SHT_SYMTAB = 2
 
 
-def _elf_symbol_values(path: str, names: set[str]) -> dict[str, int]:
-    """The st_value of each of `names` in a 64-bit little-endian ELF file's full symbol table
-    (.symtab, local symbols included; the dynamic table lists exported ones only). Reads the
-    section headers, the symbol table and its string table, nothing else of the file."""
-    found: dict[str, int] = {}
+def _elf_symbol_values(path: str, names: set[str]) -> dict[str, tuple[int, int]]:
+    """(st_value, st_size) of each of `names` defined in a 64-bit little-endian ELF file's full
+    symbol table (.symtab, local symbols included; the dynamic table lists exported ones
+    only). Reads the section headers, the symbol table and its string table, nothing else."""
+    found: dict[str, tuple[int, int]] = {}
     with open(path, "rb") as f:
         head = f.read(64)
         if head[:4] != _ELF_MAGIC or head[4] != 2 or head[5] != 1:  # ELFCLASS64, LSB
@@ -80,11 +94,11 @@ def _elf_symbol_values(path: str, names: set[str]) -> dict[str, int]:
             f.seek(sym_off)
             syms = f.read(sym_size)
             for i in range(0, sym_size, entsize):
-                st_name, _, _, _, st_value, _ = struct.unpack_from("<IBBHQQ", syms, i)
+                st_name, _, _, st_shndx, st_value, st_size = struct.unpack_from("<IBBHQQ", syms, i)
                 end = strtab.find(b"\0", st_name)
                 name = strtab[st_name:end].decode("ascii", "replace")
-                if name in names:
-                    found[name] = st_value
+                if name in names and st_shndx != 0:  # defined here, not an import
+                    found[name] = (st_value, st_size)
     return found
 
 
@@ -98,15 +112,28 @@ def _clients_table_address() -> int | None:
     path = pb.__file__
     try:
         values = _elf_symbol_values(path, {_CLIENTS_SYMBOL, _ANCHOR_SYMBOL})
-        if len(values) != 2:
+        if len(values) != 2 or values[_CLIENTS_SYMBOL][1] != 8 * _MAX_PHYSICS_CLIENTS:
             return None
         lib = ctypes.CDLL(path)  # the module's own library: already loaded, the same handle
         anchor = ctypes.cast(getattr(lib, _ANCHOR_SYMBOL), ctypes.c_void_p).value
-    except (OSError, AttributeError, struct.error):
+        if anchor is None or not _mapped_from(path, anchor):
+            return None  # the file read is not the library loaded (replaced since?)
+    except (OSError, AttributeError, struct.error, ValueError):
         return None
-    if anchor is None:
-        return None
-    return anchor - values[_ANCHOR_SYMBOL] + values[_CLIENTS_SYMBOL]
+    return anchor - values[_ANCHOR_SYMBOL][0] + values[_CLIENTS_SYMBOL][0]
+
+
+def _mapped_from(path: str, address: int) -> bool:
+    """Whether `address` lies in a mapping of the file at `path` as it is on disk now
+    (/proc/self/maps names a mapped file that was deleted or replaced since "... (deleted)")."""
+    want = os.path.realpath(path)
+    with open("/proc/self/maps") as maps:
+        for line in maps:
+            fields = line.split(maxsplit=5)
+            start, end = (int(x, 16) for x in fields[0].split("-"))
+            if start <= address < end:
+                return len(fields) == 6 and fields[5].rstrip("\n") == want
+    return False
 
 
 def client_handle(cid: int, probe_body: int) -> int | None:
@@ -114,7 +141,7 @@ def client_handle(cid: int, probe_body: int) -> int | None:
     accepts commands and reports `probe_body`'s base state as pybullet does. None where it
     cannot be found or does not check out (then the caller steps through pybullet)."""
     table = _clients_table_address()
-    if table is None or not 0 <= cid < _MAX_PHYSICS_CLIENTS:
+    if table is None or not _BOUND or not 0 <= cid < _MAX_PHYSICS_CLIENTS:
         return None
     handle = ctypes.c_void_p.from_address(table + 8 * cid).value
     if not handle or not _can_submit(handle):
@@ -128,14 +155,25 @@ def client_handle(cid: int, probe_body: int) -> int | None:
 
 
 # --- Bullet's C API (PhysicsClientC_API.h), pointers as integers ---------------------------
-def _load_library() -> None:
-    """Make pybullet's library's symbols visible to the compiled code: loading it again
-    returns the handle Python's import holds, so these are pybullet's own functions."""
-    if sys.platform.startswith("linux"):
-        llvm.load_library_permanently(pb.__file__)
+def _bind_functions() -> bool:
+    """Bind the compiled code's C functions to pybullet's own (`llvm.add_symbol`), by their
+    addresses in the module's library (loading it again returns the handle Python's import
+    holds); the process's global symbol scope is left as it is. False where not bound."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        lib = ctypes.CDLL(pb.__file__)
+        addresses = {n: ctypes.cast(getattr(lib, n), ctypes.c_void_p).value for n in _C_FUNCTIONS}
+    except (OSError, AttributeError):
+        return False
+    if not all(addresses.values()):
+        return False
+    for name, address in addresses.items():
+        llvm.add_symbol(name, address)
+    return True
 
 
-_load_library()
+_BOUND = _bind_functions()
 _p, _i, _d = types.intp, types.intc, types.float64
 _can_submit_c = types.ExternalFunction("b3CanSubmitCommand", _i(_p))
 _submit = types.ExternalFunction("b3SubmitClientCommandAndWaitStatus", _p(_p, _p))

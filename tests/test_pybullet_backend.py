@@ -182,10 +182,19 @@ def model_sim():
 
 
 def test_the_compiled_steps_are_used_here(model_sim):
-    """On Linux, with pybullet's wheel, Bullet's client handle is found and checked: the
-    comparisons below compare two paths, not one path with itself."""
+    """On Linux, with pybullet's wheel, Bullet's client handle is found and checked (its
+    state query answers with the status the compiled steps expect), the C functions are bound
+    to the module's own without making its library global, and the force flag is pybullet's
+    world frame."""
+    import ctypes
+
+    from comexp.backends import pybullet_steps
+
     _box_push(model_sim, 0.5, 0.4)
-    assert model_sim._handle is not None
+    assert model_sim._handle is not None and pybullet_steps._BOUND
+    assert pybullet_steps.EF_WORLD_FRAME == pb.WORLD_FRAME
+    with pytest.raises(AttributeError):  # not in the process's global scope
+        ctypes.CDLL(None).b3CanSubmitCommand  # noqa: B018
 
 
 @pytest.mark.parametrize("mu, speed", [(0.1, 0.4), (1.0, 0.04)])
@@ -195,9 +204,9 @@ def test_the_compiled_steps_are_the_python_steps(model_sim, monkeypatch, mu, spe
     friction inputs and its end state to the bit, an impact and a slide (mu 0.1, 40 cm/s)
     and a sustained push (mu 1, 4 cm/s)."""
     runs = []
-    for handle in (model_sim._handle, None):
-        if handle is None:
-            monkeypatch.setattr(model_sim, "_handle", None)
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(model_sim, "_handle", None)  # through pybullet's functions
         rows: list = []
         real_build = model_sim.build
 
@@ -207,6 +216,7 @@ def test_the_compiled_steps_are_the_python_steps(model_sim, monkeypatch, mu, spe
 
         monkeypatch.setattr(model_sim, "build", build)
         out = _box_push(model_sim, mu, speed)
+        assert (model_sim._handle is not None) == compiled  # two paths compared, not one
         runs.append((out, rows, model_sim.object_state(), model_sim._pusher_xy().tolist()))
     (compiled, rows_c, end_c, q_c), (python, rows_p, end_p, q_p) = runs
     assert compiled.ok and compiled.contact_made and abs(compiled.true_rotation_deg) > 1.0
@@ -240,6 +250,12 @@ def test_without_the_handle_the_steps_run_from_python(monkeypatch):
         assert s._handle is None
     assert got == want
     assert pybullet_steps._elf_symbol_values(__file__, {"b3CanSubmitCommand"}) == {}
+    # the table is read only from the file the library was loaded from, as it is on disk
+    import ctypes
+
+    anchor = ctypes.cast(ctypes.CDLL(pb.__file__).b3CanSubmitCommand, ctypes.c_void_p).value
+    assert pybullet_steps._mapped_from(pb.__file__, anchor)
+    assert not pybullet_steps._mapped_from(__file__, anchor)
 
 
 def test_a_failed_query_in_the_compiled_steps_raises(model_sim):
