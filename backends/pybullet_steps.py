@@ -205,20 +205,15 @@ _contacts_get = types.ExternalFunction("b3GetContactPointInformation", types.voi
 def _base_state_kernel(h, body, out, slots):
     """out[:7] = the body's base position and orientation (x, y, z, w), out[7:13] its linear
     and angular velocity, from one actual-state request (what pybullet's
-    getBasePositionAndOrientation and getBaseVelocity each read of theirs). False when the
+    getBasePositionAndOrientation and getBaseVelocity each read of theirs), copied from the
+    arrays Bullet hands out into `out`, a contiguous float64 array of 13. False when the
     request fails."""
     status = _submit(h, _state_init(h, body))
     if _status_type(status) != CMD_ACTUAL_STATE_UPDATE_COMPLETED:
         return False
     _state_get(status, 0, 0, 0, 0, slots.ctypes.data, slots.ctypes.data + 8, 0)
-    q = np.empty(7)
-    qd = np.empty(6)
-    c_memcpy(q.ctypes.data, slots[0], 56)
-    c_memcpy(qd.ctypes.data, slots[1], 48)
-    for k in range(7):
-        out[k] = q[k]
-    for k in range(6):
-        out[7 + k] = qd[k]
+    c_memcpy(out.ctypes.data, slots[0], 56)  # q: 7 doubles
+    c_memcpy(out.ctypes.data + 56, slots[1], 48)  # q dot: 6 doubles
     return True
 
 
@@ -269,6 +264,7 @@ def push_steps(
     at = np.zeros(3)
     torque = np.zeros(3)
     info = np.zeros(2, dtype=np.int64)  # struct b3ContactInformation (count, pointer)
+    twist = np.empty(3)
     touched = False
     for i in range(targets.shape[0]):
         # the pusher: back at its height, moving to reach its target at the step's end
@@ -293,7 +289,6 @@ def push_steps(
         if record.shape[0]:
             record[i, 0], record[i, 1], record[i, 2] = st[7], st[8], st[12]
             record[i, 3], record[i, 4] = yaw, 1.0 if pushed else 0.0
-        twist = np.empty(3)
         twist[0], twist[1], twist[2] = st[7], st[8], st[12]
         imp = impulse_kernel(geo, fs, normal, dxw, dyw, twist, yaw, dt, pushed)
         if imp[0] != 0.0 or imp[1] != 0.0 or imp[2] != 0.0:
