@@ -162,6 +162,29 @@ def _solve_spd3(H, r, out):
 
 
 @njit(cache=True)
+def _line_search(
+    xi, step, t, f, dec, trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g1, H1
+):
+    """`minimise_kernel`'s backtracking from t along `step`: each trial evaluated with its
+    gradient and Hessian (into g1, H1). Returns t, the objective there and whether the
+    trial was accepted (else t fell below 1e-12 and was not evaluated)."""
+    while t > 1e-12:
+        for i in range(3):
+            trial[i] = xi[i] + t * step[i]
+        f1 = _objective_into(
+            trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g1, H1
+        )
+        if f1 <= f - 0.25 * t * dec:
+            return t, f1, True
+        # the quadratic through f, its slope -dec at 0 and f1 at t: its minimiser,
+        # kept within [t / 10, t / 2]
+        curv = f1 - f + dec * t
+        tq = 0.5 * dec * t * t / curv if curv > 0.0 else 0.5 * t
+        t = min(0.5 * t, max(0.1 * t, tq))
+    return t, 0.0, False
+
+
+@njit(cache=True)
 def minimise_kernel(
     xi0, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, a, b, constrained, tol, itmax
 ):
@@ -172,7 +195,9 @@ def minimise_kernel(
     step = -(y - z (a . y) / (a . z)). The backtracking line search (Armijo, 1/4) takes the
     minimiser of the quadratic through f, its slope and the rejected trial, within [1/10,
     1/2] of the rejected step: near the norms' kinks a Newton step overshoots by orders of
-    magnitude, which halving pays for one pass over the samples per factor 2.
+    magnitude, which halving pays for one pass over the samples per factor 2. A trial is
+    evaluated with its gradient and Hessian: accepted (nearly always), that pass is the next
+    iteration's, so an iteration costs one pass over the samples, not a pass and a value pass.
     Returns the minimiser and the plane's multiplier (an impulse, N s)."""
     xi = xi0.copy()
     if constrained:
@@ -185,12 +210,14 @@ def minimise_kernel(
             xi[i] += a[i] / M[i] * (b - ax) / den
     g = np.zeros(3)
     H = np.zeros((3, 3))
+    g1 = np.zeros(3)  # the trial's: an accepted trial's pass is the next iteration's
+    H1 = np.zeros((3, 3))
     y = np.zeros(3)
     z = np.zeros(3)
     step = np.zeros(3)
     trial = np.zeros(3)
+    f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
     for _ in range(itmax):
-        f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
         _solve_spd3(H, g, y)
         if constrained:
             _solve_spd3(H, a, z)
@@ -214,22 +241,20 @@ def minimise_kernel(
             dr = tau[0] * step[0] + tau[1] * step[1] + tau[2] * step[2]
             if abs(r) > eps and r * (r + dr) < 0.0:
                 t = -r / dr
-        while t > 1e-12:
-            for i in range(3):
-                trial[i] = xi[i] + t * step[i]
-            f1 = value_kernel(trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor)
-            if f1 <= f - 0.25 * t * dec:
-                break
-            # the quadratic through f, its slope -dec at 0 and f1 at t: its minimiser,
-            # kept within [t / 10, t / 2]
-            curv = f1 - f + dec * t
-            tq = 0.5 * dec * t * t / curv if curv > 0.0 else 0.5 * t
-            t = min(0.5 * t, max(0.1 * t, tq))
+        t, f1, accepted = _line_search(
+            xi, step, t, f, dec, trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor,
+            g1, H1,
+        )  # fmt: skip
         for i in range(3):
             xi[i] = xi[i] + t * step[i]
+        if accepted:  # the trial's pass is the new point's (the same twist)
+            f = f1
+            g, g1 = g1, g
+            H, H1 = H1, H
+        else:
+            f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
     lam = 0.0
-    if constrained:
-        _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
+    if constrained:  # g is the objective's gradient at xi
         lam = (g[0] * a[0] + g[1] * a[1] + g[2] * a[2]) / (a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
     return xi, lam
 
@@ -263,38 +288,41 @@ def _winkler_kernel(dx, dy, a, W, cx, cy, coef):
     """Tensionless linear pressure: minimise the convex, C1, piecewise-quadratic
     Phi(alpha, beta) = sum a_k max(0, alpha + beta . d_k)^2 / 2 - W (alpha + beta . c), whose
     stationarity is the force and moment balance sum p_k a_k (1, d_k) = W (1, c) with
-    p_k = max(0, alpha + beta . d_k). Damped Newton from `coef` (updated in place)."""
+    p_k = max(0, alpha + beta . d_k). Damped Newton from `coef` (updated in place); its sums
+    in scalars and its 3x3 solve in place (`_solve_spd3`): nothing is allocated per pass."""
     n = dx.shape[0]
+    g = np.empty(3)
+    H = np.empty((3, 3))
+    step = np.empty(3)
     for _ in range(100):
-        g = np.zeros(3)
-        H = np.zeros((3, 3))
-        phi = 0.0
+        phi = g0 = g1 = g2 = 0.0
+        h00 = h01 = h02 = h11 = h12 = h22 = 0.0
         for k in range(n):
             p = coef[0] + coef[1] * dx[k] + coef[2] * dy[k]
             if p > 0.0:
                 ak = a[k]
-                phi += 0.5 * ak * p * p
-                g[0] += ak * p
-                g[1] += ak * p * dx[k]
-                g[2] += ak * p * dy[k]
-                H[0, 0] += ak
-                H[0, 1] += ak * dx[k]
-                H[0, 2] += ak * dy[k]
-                H[1, 1] += ak * dx[k] * dx[k]
-                H[1, 2] += ak * dx[k] * dy[k]
-                H[2, 2] += ak * dy[k] * dy[k]
+                akp = ak * p
+                phi += 0.5 * akp * p
+                g0 += akp
+                g1 += akp * dx[k]
+                g2 += akp * dy[k]
+                h00 += ak
+                h01 += ak * dx[k]
+                h02 += ak * dy[k]
+                h11 += ak * dx[k] * dx[k]
+                h12 += ak * dx[k] * dy[k]
+                h22 += ak * dy[k] * dy[k]
         phi -= W * (coef[0] + coef[1] * cx + coef[2] * cy)
-        g[0] -= W
-        g[1] -= W * cx
-        g[2] -= W * cy
+        g[0], g[1], g[2] = g0 - W, g1 - W * cx, g2 - W * cy
         if abs(g[0]) <= 1e-12 * W and abs(g[1]) + abs(g[2]) <= 1e-15 * W:
             break
-        H[1, 0] = H[0, 1]
-        H[2, 0] = H[0, 2]
-        H[2, 1] = H[1, 2]
+        H[0, 0], H[1, 1], H[2, 2] = h00 + 1e-18, h11 + 1e-18, h22 + 1e-18
+        H[0, 1] = H[1, 0] = h01
+        H[0, 2] = H[2, 0] = h02
+        H[1, 2] = H[2, 1] = h12
+        _solve_spd3(H, g, step)
         for i in range(3):
-            H[i, i] += 1e-18
-        step = -np.linalg.solve(H, g)
+            step[i] = -step[i]
         dec = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2])
         t = 1.0
         while t > 1e-10:
@@ -311,40 +339,51 @@ def _winkler_kernel(dx, dy, a, W, cx, cy, coef):
             coef[i] += t * step[i]
         if dec < 1e-30 * W * W:
             break
-    out = np.empty(n)
-    for k in range(n):
-        p = coef[0] + coef[1] * dx[k] + coef[2] * dy[k]
-        out[k] = a[k] * p if p > 0.0 else 0.0
-    return out
 
 
 @sample_loop
-def pressure_kernel(dx, dy, a, W, wm, cx, cy, warm):
-    """Normal force of each sample for a centre of pressure (cx, cy): one 3x3 solve inside
-    the kern, where no sample is clipped; the tensionless problem beyond it.
+def _pressure_into(dx, dy, a, r, coef, out, clip):
+    """out_k = a_k max(0, alpha + beta . d_k) (`clip`) or a_k (alpha + beta . d_k); returns
+    the smallest pressure and the sums of out_k and out_k r_k (the holding force's and
+    torque's, `_update_holding`), in one pass over the samples."""
+    p_min = np.inf
+    tot = mom = 0.0
+    for k in range(dx.shape[0]):
+        p = coef[0] + (dx[k] * coef[1] + dy[k] * coef[2])
+        p_min = min(p_min, p)
+        f = a[k] * p
+        if clip and p <= 0.0:
+            f = 0.0
+        out[k] = f
+        tot += f
+        mom += f * r[k]
+    return p_min, tot, mom
+
+
+@njit(cache=True)
+def pressure_kernel(dx, dy, a, r, W, wm, cx, cy, warm, out):
+    """Normal force of each sample for a centre of pressure (cx, cy), into `out`: one 3x3
+    solve inside the kern, where no sample is clipped; the tensionless problem beyond it.
+    Returns the sums of the forces and of their moments |d_k| out_k (`_update_holding`).
 
     `warm` (3, updated in place) holds the last tensionless solution's coefficients, NaN when
     the last call was inside the kern: a pressure centre that moves beyond the kern from step
     to step starts its Newton solve there (1-2 iterations instead of ~7 from the kern's
     linear solution; the same convex problem and stopping rule)."""
     rhs = np.empty(3)
+    coef = np.empty(3)
     rhs[0], rhs[1], rhs[2] = W, W * cx, W * cy
-    coef = np.linalg.solve(wm, rhs)
-    n = dx.shape[0]
-    out = np.empty(n)
-    p_min = np.inf
-    for k in range(n):
-        p = coef[0] + (dx[k] * coef[1] + dy[k] * coef[2])
-        out[k] = p * a[k]
-        p_min = min(p_min, p)
+    _solve_spd3(wm, rhs, coef)
+    p_min, tot, mom = _pressure_into(dx, dy, a, r, coef, out, False)
     if p_min >= 0.0:
         warm[0] = np.nan
-        return out
+        return tot, mom
     if not np.isnan(warm[0]):
         coef[:] = warm
-    out = _winkler_kernel(dx, dy, a, W, cx, cy, coef)
+    _winkler_kernel(dx, dy, a, W, cx, cy, coef)
     warm[:] = coef
-    return out
+    _, tot, mom = _pressure_into(dx, dy, a, r, coef, out, True)
+    return tot, mom
 
 
 class WinklerPressure:
@@ -367,10 +406,13 @@ class WinklerPressure:
 
     def forces(self, c: np.ndarray) -> np.ndarray:
         """Normal force of each sample (N) for a centre of pressure at c (offset from the CoM)."""
-        return pressure_kernel(
-            self._dx, self._dy, self.a, self.W, self._m, float(c[0]), float(c[1]),
-            np.full(3, np.nan),
+        out = np.empty(self.a.shape[0])
+        r = np.hypot(self._dx, self._dy)
+        pressure_kernel(
+            self._dx, self._dy, self.a, r, self.W, self._m, float(c[0]), float(c[1]),
+            np.full(3, np.nan), out,
         )  # fmt: skip
+        return out
 
 
 @functools.lru_cache(maxsize=64)
@@ -476,17 +518,24 @@ def offsets_kernel(geo, fs, yaw, dxw, dyw):
         fs[YAW_CACHED] = yaw
 
 
+@njit(cache=True)
+def _set_holding(geo, fs, tot, mom):
+    """Friction force and torque the floor can surely supply at a pressure whose normal
+    forces sum to `tot` and their moments |d_k| N_k to `mom`."""
+    mu_min = min(geo.mu_x, geo.mu_y)
+    fs[F_HOLD] = max(mu_min * tot, 1e-300)
+    fs[TAU_HOLD] = max(mu_min * mom, 1e-300)
+
+
 @sample_loop
 def _update_holding(geo, fs, normal):
-    """Friction force and torque the floor can surely supply at the current pressure."""
-    mu_min = min(geo.mu_x, geo.mu_y)
+    """`_set_holding` of the pressure `normal`."""
     tot = 0.0
     mom = 0.0
     for k in range(normal.shape[0]):
         tot += normal[k]
         mom += normal[k] * geo.r[k]
-    fs[F_HOLD] = max(mu_min * tot, 1e-300)
-    fs[TAU_HOLD] = max(mu_min * mom, 1e-300)
+    _set_holding(geo, fs, tot, mom)
 
 
 @njit(cache=True)
@@ -514,11 +563,12 @@ def set_cop_kernel(geo, fs, normal, cx, cy):
     nonzero = cx != 0.0 or cy != 0.0
     released = not nonzero and (fs[COP_X] != 0.0 or fs[COP_Y] != 0.0)  # the weight alone
     if moved or released or (fs[TIPPED] != 0.0 and nonzero):
-        normal[:] = pressure_kernel(
-            geo.dx, geo.dy, geo.area, geo.W, geo.wm, cx, cy, fs[WARM_A : WARM_BY + 1]
-        )
+        tot, mom = pressure_kernel(
+            geo.dx, geo.dy, geo.area, geo.r, geo.W, geo.wm, cx, cy, fs[WARM_A : WARM_BY + 1],
+            normal,
+        )  # fmt: skip
         fs[COP_X], fs[COP_Y] = cx, cy
-        _update_holding(geo, fs, normal)
+        _set_holding(geo, fs, tot, mom)
 
 
 @njit(cache=True)

@@ -132,8 +132,10 @@ PLANAR = BackendPhysics(
     # solver's tolerance); 4: the pitch about a support edge (a push reports tipped by the tilt
     # rule, as on the engines, not at the pitch's onset); 5: slow steps; 6: the footprint's
     # sample loops as SIMD loops (their sums reassociated: last-bit differences); 7: slow
-    # steps up to 12 cm/s, was 5 (a quasi-static push turns its object's far end faster)
-    "planar-7",
+    # steps up to 12 cm/s, was 5 (a quasi-static push turns its object's far end faster);
+    # 8: the footprint friction's 3x3 solves in scalars and its line search's trials with their
+    # gradients (last-bit differences)
+    "planar-8",
     "numba",  # the kernels are compiled by it
     (FrictionSettings(), SlowSteps()),
 )
@@ -141,8 +143,10 @@ PYBULLET = BackendPhysics(
     # 2: shared push protocol; 3: compiled friction; 4: roller pusher; 5: the footprint
     # friction's line search (results moved within the solver's tolerance); 6: the footprint's
     # sample loops as SIMD loops (last-bit differences); 7: still steps jumped (`StillJumps`);
-    # 8: the protocol checks every 10 steps, as on MuJoCo and planar (was 5)
-    "pybullet-8",
+    # 8: the protocol checks every 10 steps, as on MuJoCo and planar (was 5); 9: the footprint
+    # friction's 3x3 solves in scalars and its line search's trials with their gradients
+    # (last-bit differences)
+    "pybullet-9",
     "pybullet",
     {
         "pusher_mass_kg": PYBULLET_PUSHER_MASS_KG,
@@ -156,8 +160,10 @@ MUJOCO = BackendPhysics(
     # 2: the shared push protocol; 3: compiled footprint friction; 4: the step loop compiled
     # (its 3x3 products in scalars, not BLAS: last-bit differences); 5: the footprint
     # friction's line search (results moved within the solver's tolerance); 6: the footprint's
-    # sample loops as SIMD loops (last-bit differences); 7: still steps jumped (`StillJumps`)
-    "mujoco-7",
+    # sample loops as SIMD loops (last-bit differences); 7: still steps jumped (`StillJumps`);
+    # 8: the footprint friction's 3x3 solves in scalars and its line search's trials with their
+    # gradients (last-bit differences)
+    "mujoco-8",
     "mujoco",
     (DEFAULT_CONTACT, FrictionSettings(), STILL_JUMPS),
 )

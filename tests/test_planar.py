@@ -376,17 +376,21 @@ def test_a_warm_started_tensionless_pressure_is_the_cold_one():
     pts, a = footprint_samples(RECT, 400)
     W = 1.962
     wp = WinklerPressure(pts, a, W)
-    args = (wp._dx, wp._dy, a, W, wp._m)
+    r = np.hypot(wp._dx, wp._dy)
+    args = (wp._dx, wp._dy, a, r, W, wp._m)
+    cold, hot = np.empty(len(a)), np.empty(len(a))
     for c_last, c in [((0.025, 0.0), (0.0252, 0.001)), ((-0.03, 0.012), (0.03, -0.012))]:
         warm = np.full(3, np.nan)
-        pressure_kernel(*args, *c_last, warm)
+        pressure_kernel(*args, *c_last, warm, hot)
         assert not np.isnan(warm).any()  # beyond the kern: a tensionless solution to reuse
-        cold = pressure_kernel(*args, *c, np.full(3, np.nan))
-        hot = pressure_kernel(*args, *c, warm)
+        sums = pressure_kernel(*args, *c, np.full(3, np.nan), cold)
+        pressure_kernel(*args, *c, warm, hot)
         assert np.any(cold == 0.0)
         assert np.abs(hot - cold).max() <= 1e-9 * W
+        # the sums it returns are those of the forces it wrote (the holding limits' inputs)
+        assert sums == pytest.approx((cold.sum(), (cold * r).sum()), rel=1e-12)
     inside = np.full(3, 1.0)
-    pressure_kernel(*args, 0.0, 0.0, inside)
+    pressure_kernel(*args, 0.0, 0.0, inside, cold)
     assert np.isnan(inside[0])  # inside the kern: nothing to reuse (the flag)
 
 
