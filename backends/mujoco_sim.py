@@ -72,6 +72,7 @@ from comexp.method.scene import (  # noqa: E402
     FloorSpec,
     ObjectSpec,
     ObjectState,
+    Pose2D,
     SceneSpec,
     SimSettings,
 )
@@ -480,6 +481,7 @@ class MujocoSimulator(Simulator):
         self._scene_xml = ""
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
+        self._settled: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scene: SceneSpec | None = None
         self._renderers: OrderedDict[tuple, _Renderer] = OrderedDict()
         self._rot_buffer = np.empty(9)  # object_state's rotation matrix, filled in place
@@ -510,7 +512,7 @@ class MujocoSimulator(Simulator):
             # reads and writes them in place (backends/mujoco_steps.py)
             self._views = (d.qpos, d.qvel, d.xipos, d.xfrc_applied, d.sensordata)
             self._warning_numbers = d.warning.number  # a view too: read at every check
-        m, d = self.model, self.data
+            self._settled = None
         fl = scene.floor
         self._fric = (
             FootprintFriction(scene.obj, fl.mu_x, fl.mu_y, scene.pusher)
@@ -519,22 +521,50 @@ class MujocoSimulator(Simulator):
         )
         self._com_local = np.array([scene.obj.com_m[0], scene.obj.com_m[1], scene.obj.height_m / 2])
         self._pushed = False
-        mujoco.mj_resetData(m, d)
-        pose = scene.initial_pose
-        q = self._obj_qadr
-        d.qpos[q : q + 3] = (pose.x_m, pose.y_m, 0.0)
-        d.qpos[q + 3 : q + 7] = (math.cos(pose.yaw_rad / 2), 0.0, 0.0, math.sin(pose.yaw_rad / 2))
-        self._set_pusher(_PARK_XY_M, (0.0, 0.0))
-        mujoco.mj_forward(m, d)
+        if self._settled is None:  # this model's object settled at the origin, yaw 0
+            self._settled = self._settle_at_origin()
+        self._place_settled(scene.initial_pose)
         self._scene = scene
-        # "resting on the floor": contacts at equilibrium
-        n_settle = round(self.contact.build_settle_s / self.settings.timestep_s)
-        if n_settle:
-            mujoco.mj_step(m, d, n_settle * self.contact.substeps)
-            self._set_pusher(_PARK_XY_M, (0.0, 0.0))
-        d.time = 0.0
         self._warnings0 = self._warning_count()
         self._render_key = _geometry_key(scene, self.contact)
+
+    def _settle_at_origin(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The object "resting on the floor", contacts at equilibrium: placed flat at the
+        origin with yaw 0, stepped `build_settle_s` with the pusher parked. Returns its free
+        joint's qpos and qvel and the data's qacc_warmstart (the solver's start)."""
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        q, v = self._obj_qadr, self._obj_vadr
+        d.qpos[q : q + 7] = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+        self._set_pusher(_PARK_XY_M, (0.0, 0.0))
+        mujoco.mj_forward(m, d)
+        n_settle = round(self.contact.build_settle_s / self.settings.timestep_s)
+        mujoco.mj_step(m, d, n_settle * self.contact.substeps)
+        return d.qpos[q : q + 7].copy(), d.qvel[v : v + 6].copy(), d.qacc_warmstart.copy()
+
+    def _place_settled(self, pose: Pose2D) -> None:
+        """The settled state (`_settle_at_origin`) moved rigidly to `pose`. Settling, the
+        object only sinks into its supports on a flat, level floor (nothing moves it along the
+        floor: no applied friction, no slip), so settling at any pose is this one translated
+        and turned about z, to rounding; a build pays the settle's steps once per model, not
+        at every re-centring. Free joint: position and linear velocity (and acceleration) in
+        world axes, angular velocity in body axes."""
+        m, d = self.model, self.data
+        qpos0, qvel0, warm0 = self._settled
+        mujoco.mj_resetData(m, d)
+        q, v = self._obj_qadr, self._obj_vadr
+        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+        x, y, z = qpos0[:3].tolist()
+        d.qpos[q : q + 3] = (pose.x_m + (c * x - s * y), pose.y_m + (s * x + c * y), z)
+        turn = np.array((math.cos(pose.yaw_rad / 2), 0.0, 0.0, math.sin(pose.yaw_rad / 2)))
+        mujoco.mju_mulQuat(d.qpos[q + 3 : q + 7], turn, qpos0[3:7])
+        d.qvel[v : v + 6] = qvel0
+        d.qacc_warmstart[:] = warm0
+        for arr in (d.qvel, d.qacc_warmstart):
+            ax, ay = arr[v], arr[v + 1]
+            arr[v], arr[v + 1] = c * ax - s * ay, s * ax + c * ay
+        self._set_pusher(_PARK_XY_M, (0.0, 0.0))
+        mujoco.mj_forward(m, d)
 
     def _require(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
         if self.model is None or self.data is None:

@@ -16,6 +16,7 @@ acceleration) are still counted after every chunk (`MujocoSimulator._engine_fail
 
 from __future__ import annotations
 
+import ctypes
 import glob
 import math
 import os
@@ -45,11 +46,25 @@ def _libmujoco() -> str:
     return found[0]
 
 
-# The bindings have already loaded this library; loading it again for LLVM returns the same
-# handle, so the symbols below are the very functions `mujoco.mj_step` calls. Declared by name
-# (resolved when the compiled code is loaded), which keeps the compiled loop cacheable.
-# Pointers are passed as integers: the same registers in the x86-64 and AArch64 C ABIs.
-llvm.load_library_permanently(_libmujoco())
+def _bind_functions() -> None:
+    """Bind the compiled code's C functions to libmujoco's own (`llvm.add_symbol`), by their
+    addresses: the bindings have already loaded the library, and loading it again returns
+    the same handle, so these are the very functions `mujoco.mj_step` calls. The process's
+    global symbol scope is left as it is (making the library global would let libraries
+    loaded later bind to its symbols)."""
+    lib = ctypes.CDLL(_libmujoco())
+    for name in _C_FUNCTIONS:
+        address = ctypes.cast(getattr(lib, name), ctypes.c_void_p).value
+        if not address:
+            raise ImportError(f"libmujoco has no {name}")
+        llvm.add_symbol(name, address)
+
+
+# Declared by name (resolved when the compiled code is loaded), which keeps the compiled loop
+# cacheable. Pointers are passed as integers: the same registers in the x86-64 and AArch64 C
+# ABIs.
+_C_FUNCTIONS = ("mj_step", "mju_quat2Mat")
+_bind_functions()
 _mj_step = types.ExternalFunction("mj_step", types.void(types.intp, types.intp))
 _mju_quat2mat = types.ExternalFunction("mju_quat2Mat", types.void(types.intp, types.intp))
 

@@ -230,6 +230,25 @@ def test_a_traced_push_is_the_untraced_push(sim, mu, speed):
     assert traced == plain
 
 
+def test_the_compiled_loop_calls_libmujoco_without_making_it_global(sim):
+    """mujoco_steps binds mj_step and mju_quat2Mat by address (llvm.add_symbol) to the
+    library the bindings loaded, and leaves the process's global symbol scope as it was: a
+    library loaded later cannot bind to libmujoco's symbols through it."""
+    import ctypes
+
+    from llvmlite import binding as llvm
+
+    from comexp.backends import mujoco_steps
+
+    assert _box_push(sim, 0.5, 0.4).contact_made  # the compiled loop ran
+    lib = ctypes.CDLL(mujoco_steps._libmujoco())
+    for name in mujoco_steps._C_FUNCTIONS:
+        own = ctypes.cast(getattr(lib, name), ctypes.c_void_p).value
+        assert llvm.address_of_symbol(name) == own
+        with pytest.raises(AttributeError):
+            getattr(ctypes.CDLL(None), name)
+
+
 def test_recording_the_friction_inputs_changes_nothing(sim, monkeypatch):
     """`FootprintFriction.inputs` (bench/step_cost.py's replay) gets one row per step the
     engine takes and leaves the push as it was; the still steps it jumps compute none."""
@@ -271,3 +290,32 @@ def test_the_touch_sensor_reads_the_contact_list(sim):
         assert sim._pusher_touching() == listed, k
         seen.add(listed)
     assert seen == {False, True}
+
+
+@pytest.mark.parametrize("floor_friction", ["model", "native"])
+def test_a_build_is_the_settle_at_its_pose(floor_friction):
+    """A build places the object's settled state (settled once per model at the origin, yaw
+    0) at the scene's pose: what settling there gives, to rounding, at any pose and yaw, on an
+    anisotropic floor too; the settle is not trivial (the object sinks into its supports)."""
+    from dataclasses import replace
+
+    sim = mujoco_sim.MujocoSimulator(floor_friction=floor_friction)
+    try:
+        scene = replace(_box_scene(1.0), floor=FloorSpec(0.3, 0.9))
+        for pose in (Pose2D(0.0, 0.0, 0.0), Pose2D(0.03, -0.02, 0.7), Pose2D(-0.1, 0.05, -2.9)):
+            sim.build(replace(scene, initial_pose=pose))
+            m, d = sim.model, sim.data
+            q, v = sim._obj_qadr, sim._obj_vadr
+            built = d.qpos[q : q + 7].copy(), d.qvel[v : v + 6].copy()
+            mujoco = mujoco_sim.mujoco  # the steps a build took before: settle at the pose
+            mujoco.mj_resetData(m, d)
+            d.qpos[q : q + 3] = (pose.x_m, pose.y_m, 0.0)
+            d.qpos[q + 3 : q + 7] = (math.cos(pose.yaw_rad / 2), 0, 0, math.sin(pose.yaw_rad / 2))
+            sim._set_pusher(mujoco_sim._PARK_XY_M, (0.0, 0.0))
+            mujoco.mj_forward(m, d)
+            mujoco.mj_step(m, d, round(sim.contact.build_settle_s / sim.settings.timestep_s))
+            assert d.qpos[q + 2] < -1e-7  # sunk into the supports' soft contacts (0.28 um)
+            assert np.abs(built[0] - d.qpos[q : q + 7]).max() < 1e-12
+            assert np.abs(built[1] - d.qvel[v : v + 6]).max() < 1e-14  # it sinks at 1e-11 m/s
+    finally:
+        sim.close()

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import shapely
+from numba import njit
 
 from comexp.method.geometry import centroid as polygon_centroid
 from comexp.method.geometry import signed_area
@@ -94,47 +95,111 @@ def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarr
     return labels == biggest
 
 
+@njit(cache=True)
+def _local_fit_kernel(pts, half, smooth, tangent, line_rms, parab_rms, slope_deg):
+    """`_local_fit` point by point, into the output arrays. Returns False when a parabola's
+    normal equations are singular (repeated points): no fit."""
+    m = pts.shape[0]
+    w = 2 * half + 1
+    xs = np.empty(w)  # the window in the point's (t, n) frame
+    ys = np.empty(w)
+    for i in range(m):
+        px, py = pts[i, 0], pts[i, 1]
+        mx = my = 0.0
+        for j in range(-half, half + 1):
+            k = (i + j) % m
+            mx += pts[k, 0]
+            my += pts[k, 1]
+        mx /= w
+        my /= w
+        sxx = syy = sxy = 0.0
+        for j in range(-half, half + 1):
+            k = (i + j) % m
+            ex, ey = pts[k, 0] - mx, pts[k, 1] - my
+            sxx += ex * ex
+            syy += ey * ey
+            sxy += ex * ey
+        sxx /= w
+        syy /= w
+        sxy /= w
+        ang = 0.5 * math.atan2(2.0 * sxy, sxx - syy)  # major eigenvector of the scatter
+        tx, ty = math.cos(ang), math.sin(ang)
+        tr, det = sxx + syy, sxx * syy - sxy * sxy
+        line_rms[i] = math.sqrt(max(0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0)), 0.0))
+        a, b = (i + half) % m, (i - half) % m
+        if tx * (pts[a, 0] - pts[b, 0]) + ty * (pts[a, 1] - pts[b, 1]) < 0.0:
+            tx, ty = -tx, -ty
+        nx, ny = -ty, tx
+        # the parabola y = c0 + c1 x + c2 x^2 in the (t, n) frame at the point: normal
+        # equations in u = x / L (L the window's rms x: well conditioned), Cramer's rule
+        ss = 0.0
+        for j in range(w):
+            k = (i + j - half) % m
+            dx, dy = pts[k, 0] - px, pts[k, 1] - py
+            xs[j] = dx * tx + dy * ty
+            ys[j] = dx * nx + dy * ny
+            ss += xs[j] * xs[j]
+        scale = math.sqrt(ss / w)
+        if not scale > 0.0:
+            return False
+        s0 = s1 = s2 = s3 = s4 = r0 = r1 = r2 = 0.0
+        for j in range(w):
+            u = xs[j] / scale
+            uu = u * u
+            s0 += 1.0
+            s1 += u
+            s2 += uu
+            s3 += uu * u
+            s4 += uu * uu
+            r0 += ys[j]
+            r1 += u * ys[j]
+            r2 += uu * ys[j]
+        c00, c01, c02 = s2 * s4 - s3 * s3, s2 * s3 - s1 * s4, s1 * s3 - s2 * s2
+        det3 = s0 * c00 + s1 * c01 + s2 * c02
+        if not abs(det3) > 1e-12 * s0 * s2 * s4:
+            return False
+        c11, c12, c22 = s0 * s4 - s2 * s2, s1 * s2 - s0 * s3, s0 * s2 - s1 * s1
+        c0 = (c00 * r0 + c01 * r1 + c02 * r2) / det3
+        c1 = (c01 * r0 + c11 * r1 + c12 * r2) / det3 / scale
+        c2 = (c02 * r0 + c12 * r1 + c22 * r2) / det3 / (scale * scale)
+        res = 0.0
+        for j in range(w):
+            x = xs[j]
+            e = c0 + c1 * x + c2 * x * x - ys[j]
+            res += e * e
+        parab_rms[i] = math.sqrt(res / w)
+        gx, gy = tx + c1 * nx, ty + c1 * ny
+        g = math.sqrt(gx * gx + gy * gy)
+        tangent[i, 0], tangent[i, 1] = gx / g, gy / g
+        smooth[i, 0], smooth[i, 1] = px + c0 * nx, py + c0 * ny
+        slope_deg[i] = math.degrees(abs(math.atan(c1)))
+    return True
+
+
 def _local_fit(pts: np.ndarray, half: int) -> dict[str, np.ndarray]:
-    """Local shape of a closed polyline around every point, vectorised over all points.
+    """Local shape of a closed polyline around every point (compiled: `_local_fit_kernel`).
 
     A line is fitted to the 2*half+1 neighbours (its direction orients the local frame), then a
     parabola y = a + b x + c x^2 in that frame (x along the line, origin at the point). The
     parabola gives a denoised position (p + a n) and tangent (slope b) that are unbiased on
     curves too; its residual, and the line's, tell corners from edges and arcs.
     """
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
     m = len(pts)
-    idx = (np.arange(m)[:, None] + np.arange(-half, half + 1)[None, :]) % m
-    win = pts[idx]  # (m, w, 2)
-    d0 = win - win.mean(axis=1, keepdims=True)
-    sxx = np.mean(d0[..., 0] ** 2, axis=1)
-    syy = np.mean(d0[..., 1] ** 2, axis=1)
-    sxy = np.mean(d0[..., 0] * d0[..., 1], axis=1)
-    ang = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # major eigenvector of the scatter matrix
-    t = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    tr, det = sxx + syy, sxx * syy - sxy * sxy
-    line_rms = np.sqrt(np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0))
-    chord = pts[(np.arange(m) + half) % m] - pts[(np.arange(m) - half) % m]
-    t[np.sum(t * chord, axis=1) < 0] *= -1.0
-    n = np.stack([-t[:, 1], t[:, 0]], axis=1)
-    d = win - pts[:, None, :]
-    x = np.sum(d * t[:, None, :], axis=2)
-    y = np.sum(d * n[:, None, :], axis=2)
-    a_mat = np.stack([np.ones_like(x), x, x * x], axis=2)
-    ata = np.einsum("mki,mkj->mij", a_mat, a_mat)
-    aty = np.einsum("mki,mk->mi", a_mat, y)
-    coef = np.linalg.solve(ata, aty[..., None])[..., 0]
-    fit = np.einsum("mki,mi->mk", a_mat, coef)
-    parab_rms = np.sqrt(np.mean((fit - y) ** 2, axis=1))
-    slope = coef[:, 1]
-    tangent = t + slope[:, None] * n
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    return {
-        "smooth": pts + coef[:, :1] * n,
-        "tangent": tangent,
-        "line_rms": line_rms,
-        "parab_rms": parab_rms,
-        "slope_deg": np.degrees(np.abs(np.arctan(slope))),
+    out = {
+        "smooth": np.empty((m, 2)),
+        "tangent": np.empty((m, 2)),
+        "line_rms": np.empty(m),
+        "parab_rms": np.empty(m),
+        "slope_deg": np.empty(m),
     }
+    ok = _local_fit_kernel(
+        pts, int(half), out["smooth"], out["tangent"], out["line_rms"], out["parab_rms"],
+        out["slope_deg"],
+    )  # fmt: skip
+    if not ok:
+        raise PerceptionError("the object's contour has repeated points", "perception")
+    return out
 
 
 def observe(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> Observation:
