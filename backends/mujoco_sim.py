@@ -495,6 +495,7 @@ class MujocoSimulator(Simulator):
         if key != self._xml_key:
             self._xml_key = key
             self._scene_xml = scene_mjcf(scene, self.settings, self.contact, self.floor_friction)
+            self._settled = None  # the settle's length is a setting the MJCF does not hold
         xml = self._scene_xml
         if xml != self._xml:  # compiling is deterministic, so reuse == recompile bitwise
             self.model = mujoco.MjModel.from_xml_string(xml)
