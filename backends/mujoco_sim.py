@@ -495,7 +495,7 @@ class MujocoSimulator(Simulator):
         if key != self._xml_key:
             self._xml_key = key
             self._scene_xml = scene_mjcf(scene, self.settings, self.contact, self.floor_friction)
-            self._settled = None  # the settle's length is a setting the MJCF does not hold
+            self._settled = None  # settled again: the settle's length is not in the MJCF
         xml = self._scene_xml
         if xml != self._xml:  # compiling is deterministic, so reuse == recompile bitwise
             self.model = mujoco.MjModel.from_xml_string(xml)
@@ -513,7 +513,6 @@ class MujocoSimulator(Simulator):
             # reads and writes them in place (backends/mujoco_steps.py)
             self._views = (d.qpos, d.qvel, d.xipos, d.xfrc_applied, d.sensordata)
             self._warning_numbers = d.warning.number  # a view too: read at every check
-            self._settled = None
         fl = scene.floor
         self._fric = (
             FootprintFriction(scene.obj, fl.mu_x, fl.mu_y, scene.pusher)

@@ -16,7 +16,6 @@ acceleration) are still counted after every chunk (`MujocoSimulator._engine_fail
 
 from __future__ import annotations
 
-import ctypes
 import glob
 import math
 import os
@@ -24,12 +23,11 @@ import sys
 
 import mujoco
 import numpy as np
-from llvmlite import binding as llvm
 from numba import njit, types
 
 from comexp.backends import floor_friction
 from comexp.backends.floor_friction import impulse_kernel
-from comexp.backends.numba_kernels import stamp_with_sources
+from comexp.backends.numba_kernels import bind_library_functions, stamp_with_sources
 
 
 def _libmujoco() -> str:
@@ -46,25 +44,13 @@ def _libmujoco() -> str:
     return found[0]
 
 
-def _bind_functions() -> None:
-    """Bind the compiled code's C functions to libmujoco's own (`llvm.add_symbol`), by their
-    addresses: the bindings have already loaded the library, and loading it again returns
-    the same handle, so these are the very functions `mujoco.mj_step` calls. The process's
-    global symbol scope is left as it is (making the library global would let libraries
-    loaded later bind to its symbols)."""
-    lib = ctypes.CDLL(_libmujoco())
-    for name in _C_FUNCTIONS:
-        address = ctypes.cast(getattr(lib, name), ctypes.c_void_p).value
-        if not address:
-            raise ImportError(f"libmujoco has no {name}")
-        llvm.add_symbol(name, address)
-
-
 # Declared by name (resolved when the compiled code is loaded), which keeps the compiled loop
-# cacheable. Pointers are passed as integers: the same registers in the x86-64 and AArch64 C
+# cacheable, and bound to the functions `mujoco.mj_step` calls (libmujoco is not made
+# global). Pointers are passed as integers: the same registers in the x86-64 and AArch64 C
 # ABIs.
 _C_FUNCTIONS = ("mj_step", "mju_quat2Mat")
-_bind_functions()
+if not bind_library_functions(_libmujoco(), _C_FUNCTIONS):
+    raise ImportError(f"cannot bind {', '.join(_C_FUNCTIONS)} in {_libmujoco()}")
 _mj_step = types.ExternalFunction("mj_step", types.void(types.intp, types.intp))
 _mju_quat2mat = types.ExternalFunction("mju_quat2Mat", types.void(types.intp, types.intp))
 

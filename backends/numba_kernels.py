@@ -17,16 +17,37 @@ the compiled overload's entry point.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 from pathlib import Path
 from types import ModuleType
 
+from llvmlite import binding as llvm
 from numba import types
 from numba.core.dispatcher import Dispatcher
 
 # C's memcpy(dst, src, n) for compiled code that reads or writes an engine's memory by address
 # (pointers as integers: the same registers in the x86-64 and AArch64 C ABIs)
 c_memcpy = types.ExternalFunction("memcpy", types.intp(types.intp, types.intp, types.intp))
+
+
+def bind_library_functions(path: str, names: tuple[str, ...]) -> bool:
+    """Bind the compiled code's external functions `names` to those of the shared library at
+    `path` (`llvm.add_symbol`, by address). Loading a library Python has already loaded returns
+    the same handle, so these are the very functions its module calls; the process's global
+    symbol scope is left as it is (a library made global could interpose its symbols, a
+    bundled C++ runtime's say, on libraries loaded later). False, nothing bound, when the
+    library or one of the names is missing."""
+    try:
+        lib = ctypes.CDLL(path)
+        addresses = {n: ctypes.cast(getattr(lib, n), ctypes.c_void_p).value for n in names}
+    except (OSError, AttributeError):
+        return False
+    if not all(addresses.values()):
+        return False
+    for name, address in addresses.items():
+        llvm.add_symbol(name, address)
+    return True
 
 
 class DirectCall:

@@ -36,12 +36,11 @@ from functools import lru_cache
 
 import numpy as np
 import pybullet as pb
-from llvmlite import binding as llvm
 from numba import njit, types
 
 from comexp.backends import floor_friction
 from comexp.backends.floor_friction import impulse_kernel
-from comexp.backends.numba_kernels import c_memcpy, stamp_with_sources
+from comexp.backends.numba_kernels import bind_library_functions, c_memcpy, stamp_with_sources
 
 # pybullet's table of client handles (pybullet.c: `static b3PhysicsClientHandle
 # sPhysicsClients1[MAX_PHYSICS_CLIENTS]`) and an exported function to locate it by
@@ -55,7 +54,7 @@ _MAX_PHYSICS_CLIENTS = 1024  # pybullet.c's MAX_PHYSICS_CLIENTS
 CMD_ACTUAL_STATE_UPDATE_COMPLETED = 21
 CMD_CONTACT_POINT_INFORMATION_COMPLETED = 39
 EF_WORLD_FRAME = 2
-# the C functions the compiled steps call, bound by address (`_bind_functions`)
+# the C functions the compiled steps call, bound by address (`bind_library_functions`)
 _C_FUNCTIONS = (
     "b3CanSubmitCommand", "b3SubmitClientCommandAndWaitStatus", "b3GetStatusType",
     "b3InitStepSimulationCommand", "b3RequestActualStateCommandInit", "b3GetStatusActualState",
@@ -155,25 +154,8 @@ def client_handle(cid: int, probe_body: int) -> int | None:
 
 
 # --- Bullet's C API (PhysicsClientC_API.h), pointers as integers ---------------------------
-def _bind_functions() -> bool:
-    """Bind the compiled code's C functions to pybullet's own (`llvm.add_symbol`), by their
-    addresses in the module's library (loading it again returns the handle Python's import
-    holds); the process's global symbol scope is left as it is. False where not bound."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        lib = ctypes.CDLL(pb.__file__)
-        addresses = {n: ctypes.cast(getattr(lib, n), ctypes.c_void_p).value for n in _C_FUNCTIONS}
-    except (OSError, AttributeError):
-        return False
-    if not all(addresses.values()):
-        return False
-    for name, address in addresses.items():
-        llvm.add_symbol(name, address)
-    return True
-
-
-_BOUND = _bind_functions()
+# the compiled code's C functions are pybullet's own, the library not made global
+_BOUND = sys.platform.startswith("linux") and bind_library_functions(pb.__file__, _C_FUNCTIONS)
 _p, _i, _d = types.intp, types.intc, types.float64
 _can_submit_c = types.ExternalFunction("b3CanSubmitCommand", _i(_p))
 _submit = types.ExternalFunction("b3SubmitClientCommandAndWaitStatus", _p(_p, _p))
