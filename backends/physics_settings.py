@@ -134,8 +134,10 @@ PLANAR = BackendPhysics(
     # sample loops as SIMD loops (their sums reassociated: last-bit differences); 7: slow
     # steps up to 12 cm/s, was 5 (a quasi-static push turns its object's far end faster);
     # 8: the footprint friction's 3x3 solves in scalars and its line search's trials with their
-    # gradients (last-bit differences)
-    "planar-8",
+    # gradients (last-bit differences); 9: a sustained push's solve on the contact plane
+    # first, the free solve only when the plane's frictionless multiplier does not rule it out
+    # (the same choices; last-bit differences)
+    "planar-9",
     "numba",  # the kernels are compiled by it
     (FrictionSettings(), SlowSteps()),
 )

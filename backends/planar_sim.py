@@ -130,27 +130,14 @@ def _contact(pg, ms, qx, qy):
 
 
 @njit(cache=True)
-def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, mu_p, lam0):
-    """The step's solve with the pusher's unilateral plastic contact and its friction: the
-    free solve first; if it would leave the pusher inside, the contact plane as a constraint,
-    with a fixed point on the normal impulse that scales the tangential friction.
-    The constrained solve starts from the twist the object brings into the step (projected
-    on the plane), not from the free solve's: on a sustained push that is next to the
-    answer, while the free solve's twist has the pusher's tangential friction far off its
-    kink, where Newton's steps overshoot (passes over the samples counted in
-    docs/performance.md, "planar"; the same minimiser).
-    Returns (xi, normal impulse, tangential impulse)."""
-    nx, ny, rx, ry, gap = con
-    a = np.array([nx, ny, rx * ny - ry * nx])
-    b = (vqx * nx + vqy * ny) - max(gap, 0.0) / dt
-    tx, ty = -ny, nx
-    tau = np.array([tx, ty, rx * ty - ry * tx])
-    r0 = vqx * tx + vqy * ty
+def _plane_solve(geo, normal, floor, xi_hat, dxw, dyw, dt, a, b, tau, r0, mu_p, lam0):
+    """The solve with the pusher's contact plane a . xi = b as a constraint, with a fixed
+    point on the normal impulse (from `lam0`) that scales the tangential friction (tau, r0).
+    It starts from the twist the object brings into the step (projected on the plane), not
+    from the free solve's: on a sustained push that is next to the answer, while the free
+    solve's twist has the pusher's tangential friction far off its kink, where Newton's steps
+    overshoot. Returns (xi, normal impulse, tangential impulse)."""
     M, mx, my, eps, tol, itmax = geo.M, geo.mu_x, geo.mu_y, geo.eps, geo.tol, geo.itmax
-    xi, _ = minimise_kernel(xi_hat, xi_hat, M, normal, dxw, dyw, mx, my, dt, eps, 0.0, tau,
-                            0.0, floor, a, b, False, tol, itmax)  # fmt: skip
-    if a[0] * xi[0] + a[1] * xi[1] + a[2] * xi[2] >= b:
-        return xi, 0.0, 0.0
     lam = max(lam0, 0.0)
     xi = xi_hat.copy()  # the step's start: on a sustained push, near its own solution
     for _ in range(8):  # fixed point on the normal impulse of the tangential friction
@@ -167,6 +154,47 @@ def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, 
         r = tau[0] * xi[0] + tau[1] * xi[1] + tau[2] * xi[2] - r0
         t_imp = -lam * mu_p * r / math.sqrt(r * r + eps * eps)
     return xi, lam, t_imp
+
+
+@njit(cache=True)
+def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, mu_p, lam0):
+    """The step's solve with the pusher's unilateral plastic contact and its friction: the
+    free solve; if it would leave the pusher inside, the solve on the contact plane
+    (`_plane_solve`). On a sustained push the free solve is the costly one (its object stops
+    against the floor's friction at the norms' kink, where Newton takes up to `max_newton`
+    passes) and its answer is known: when the last step pushed (`lam0` > 0) the plane's solve
+    comes first, and the free solve is skipped when the plane's multiplier without the
+    pusher's friction is positive: the free objective's minimum over the half space a . xi
+    >= b is then on the plane, so its free minimiser is outside (convexity), as the free
+    solve would have found. Otherwise (a push ending, or a push held by the pusher's
+    friction alone) the free solve decides, as always.
+    Returns (xi, normal impulse, tangential impulse)."""
+    nx, ny, rx, ry, gap = con
+    a = np.array([nx, ny, rx * ny - ry * nx])
+    b = (vqx * nx + vqy * ny) - max(gap, 0.0) / dt
+    tx, ty = -ny, nx
+    tau = np.array([tx, ty, rx * ty - ry * tx])
+    r0 = vqx * tx + vqy * ty
+    pushed = lam0 > 0.0
+    xi, lam, t_imp = xi_hat, 0.0, 0.0
+    if pushed:
+        xi, lam, t_imp = _plane_solve(geo, normal, floor, xi_hat, dxw, dyw, dt, a, b, tau, r0,
+                                      mu_p, lam0)  # fmt: skip
+        if lam > 0.0:
+            _, lam_frictionless = minimise_kernel(
+                xi, xi_hat, geo.M, normal, dxw, dyw, geo.mu_x, geo.mu_y, dt, geo.eps, 0.0, tau,
+                r0, floor, a, b, True, geo.tol, geo.itmax,
+            )  # fmt: skip
+            if lam_frictionless > 1e-9:
+                return xi, lam, t_imp
+    xi_free, _ = minimise_kernel(xi_hat, xi_hat, geo.M, normal, dxw, dyw, geo.mu_x, geo.mu_y,
+                                 dt, geo.eps, 0.0, tau, 0.0, floor, a, b, False, geo.tol,
+                                 geo.itmax)  # fmt: skip
+    if a[0] * xi_free[0] + a[1] * xi_free[1] + a[2] * xi_free[2] >= b:
+        return xi_free, 0.0, 0.0
+    if pushed:
+        return xi, lam, t_imp
+    return _plane_solve(geo, normal, floor, xi_hat, dxw, dyw, dt, a, b, tau, r0, mu_p, lam0)
 
 
 @njit(cache=True)

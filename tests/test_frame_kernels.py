@@ -26,6 +26,7 @@ from comexp.method.observation import (
 )
 from comexp.method.rendering import (
     _prism_kernel,
+    _prism_window,
     render_prism_depth,
     render_prism_depth_numpy,
     render_prism_window_depth,
@@ -137,6 +138,23 @@ def test_render_prism_depth_is_the_numpy_ray_cast_pixel_for_pixel():
         np.testing.assert_array_equal(new, ref)
         n_object_px += int(np.sum(ref < CAM.position_m[2]))
     assert n_object_px > 100_000  # the poses do show objects (top faces and walls)
+
+
+def test_the_ray_cast_window_is_the_projections_bounding_box():
+    """`_prism_window` (compiled extremes) is the box of the outline's `world_to_pixel`
+    projections at the floor and at the top face, one pixel wider, clipped to the image:
+    the pixels outside it, which no ray cast looks at, cannot see the prism."""
+    for outline, height, pose in _random_prisms(120, seed=13):
+        world = pose.to_world(outline)
+        uv = np.concatenate(
+            [CAM.world_to_pixel(world[:, 0], world[:, 1], z) for z in (0.0, height)]
+        )
+        u0 = max(math.floor(uv[:, 0].min()) - 1, 0)
+        u1 = min(math.ceil(uv[:, 0].max()) + 1, CAM.width_px - 1)
+        v0 = max(math.floor(uv[:, 1].min()) - 1, 0)
+        v1 = min(math.ceil(uv[:, 1].max()) + 1, CAM.height_px - 1)
+        want = (u0, u1, v0, v1) if u0 <= u1 and v0 <= v1 else None
+        assert _prism_window(CAM, world, height) == want
 
 
 def test_a_tracking_frame_s_window_is_the_full_image_s_and_tracks_the_same():

@@ -33,6 +33,40 @@ def test_rows_grow_downward_and_columns_with_x():
     assert v.mean() > CAM.cy_px and u.mean() < CAM.cx_px
 
 
+def _full_image_mask(img: DepthImage) -> np.ndarray:
+    """The largest 8-connected blob above the floor, labelled on the whole image: what
+    `object_mask` labels on the box around the blobs only."""
+    import cv2
+
+    from comexp.method.observation import MIN_HEIGHT_M, floor_depth_m
+
+    d = img.depth_m
+    above = np.isfinite(d) & (d < floor_depth_m(img.camera) - MIN_HEIGHT_M)
+    n, labels = cv2.connectedComponents(above.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(above)
+    return labels == 1 + int(np.argmax(np.bincount(labels.ravel(), minlength=n)[1:]))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_mask_is_the_largest_blob_of_the_whole_image(seed):
+    """Blobs of random sizes (two of equal area: the first in raster order wins), a NaN
+    pixel, a blob on the image's border, or no blob at all."""
+    rng = np.random.default_rng(seed)
+    hz = CAM.position_m[2]
+    depth = np.full((CAM.height_px, CAM.width_px), hz)
+    for _ in range(seed):  # seed 0: the empty floor
+        v, u = rng.integers(0, CAM.height_px - 8), rng.integers(0, CAM.width_px - 8)
+        depth[v : v + rng.integers(1, 8), u : u + rng.integers(1, 8)] = hz - 0.02
+    if seed >= 2:  # two equal squares: the first in raster order is kept
+        depth[10:14, 40:44] = hz - 0.02
+        depth[30:34, 5:9] = hz - 0.02
+        depth[0, -1] = np.nan
+        depth[-3:, 0:3] = hz - 0.02  # touching the border
+    img = DepthImage(depth, CAM)
+    np.testing.assert_array_equal(object_mask(img), _full_image_mask(img))
+
+
 def test_mask_region_and_hull_match_the_footprint():
     pose = Pose2D(0.12, -0.07, 0.4)
     perc, obs = perceive_first(render_prism_depth(CAM, BOX, H, pose))

@@ -130,3 +130,28 @@ def test_no_jump_from_a_tilted_object(sim, monkeypatch):
         tilted = dataclasses.replace(flat, roll_rad=math.radians(tilt_deg))
         monkeypatch.setattr(sim, "object_state", lambda st=tilted: st)
         assert (sim._steps_still(targets) > 0) is jumps, tilt_deg
+
+
+def test_the_signed_distance_is_shapelys_on_every_builtin_outline():
+    """`point_polygon_distance` (the protocol's clearance: the compiled closest point) is
+    shapely's distance to the boundary, negative inside, on every built-in outline, with
+    points inside, outside, on the extended edges' lines and near the vertices."""
+    import shapely
+
+    from comexp.experiment.contact import point_polygon_distance
+    from comexp.objects import load_objects
+
+    rng = np.random.default_rng(3)
+    for name, obj in load_objects().items():
+        poly = np.array(obj.outline_cm, dtype=float) / 100.0
+        shape = shapely.Polygon(poly)
+        pts = np.concatenate(
+            [
+                rng.uniform(poly.min(0) - 0.03, poly.max(0) + 0.03, size=(200, 2)),
+                poly + rng.normal(scale=1e-3, size=poly.shape),  # near every vertex
+            ]
+        )
+        for x, y in pts:
+            ref = shape.exterior.distance(shapely.Point(x, y))
+            ref = -ref if shape.contains(shapely.Point(x, y)) else ref
+            assert point_polygon_distance((x, y), poly) == pytest.approx(ref, abs=1e-12), name

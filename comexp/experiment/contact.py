@@ -14,16 +14,16 @@ import numpy as np
 from comexp.method.scene import ObjectState, PushCommand, PusherSpec
 
 
-def point_polygon_distance(pt: np.ndarray, poly: np.ndarray) -> float:
-    """Signed distance from a point to a simple polygon's boundary (negative inside)."""
-    a = poly
-    ab = np.roll(poly, -1, axis=0) - a
-    t = np.clip(np.einsum("ij,ij->i", pt - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-    d = float(np.min(np.hypot(*(a + t[:, None] * ab - pt).T)))
-    crosses = (a[:, 1] > pt[1]) != (np.roll(a[:, 1], -1) > pt[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = a[:, 0] + (pt[1] - a[:, 1]) * ab[:, 0] / ab[:, 1]
-    inside = int(np.sum(crosses & (pt[0] < x_at))) % 2 == 1
+def point_polygon_distance(pt: np.ndarray | Sequence[float], poly: np.ndarray) -> float:
+    """Signed distance from a point to a simple polygon's boundary (negative inside).
+
+    The compiled closest point (`clear_steps.closest_on_polygon`, ~0.6 us against ~40 of
+    numpy calls), imported here on first use: the driver imports this module and loads no
+    Numba."""
+    from comexp.experiment.clear_steps import closest_on_polygon
+
+    poly = np.ascontiguousarray(poly, dtype=np.float64)
+    _, _, d, inside = closest_on_polygon(float(pt[0]), float(pt[1]), poly)
     return -d if inside else d
 
 
@@ -39,7 +39,7 @@ def pusher_clearance_m(
 ) -> float:
     """Gap between the pusher's surface and the object's footprint (negative = overlap)."""
     poly = state.pose.to_world(outline_m)
-    return point_polygon_distance(np.asarray(xy, dtype=float), poly) - radius_m
+    return point_polygon_distance(xy, poly) - radius_m
 
 
 def contact_push(

@@ -85,14 +85,21 @@ def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarr
     """Pixels clearly above the floor; only the largest connected blob is kept (the object)."""
     depth = img.depth_m
     above = np.isfinite(depth) & (depth < floor_depth_m(img.camera) - min_height_m)
+    rows = np.flatnonzero(above.any(axis=1))
+    if len(rows) == 0:
+        return above
+    cols = np.flatnonzero(above.any(axis=0))
+    # only the box around what is above the floor is labelled (a few % of a full image): its
+    # blobs, their raster order and so the first of the largest are the full image's
+    v0, v1, u0, u1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     # Labels plus a bincount for the areas: cv2.connectedComponentsWithStats computes
     # bounding boxes and centroids we do not need and costs ~8x more (docs/performance.md).
-    n, labels = cv2.connectedComponents(above.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros_like(above)
+    n, labels = cv2.connectedComponents(above[v0:v1, u0:u1].astype(np.uint8), connectivity=8)
     areas = np.bincount(labels.ravel(), minlength=n)
     biggest = 1 + int(np.argmax(areas[1:]))
-    return labels == biggest
+    mask = np.zeros_like(above)
+    mask[v0:v1, u0:u1] = labels == biggest
+    return mask
 
 
 @njit(cache=True)

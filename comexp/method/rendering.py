@@ -19,22 +19,33 @@ from comexp.method.scene import CameraModel, DepthImage, Pose2D
 def _prism_window(camera: CameraModel, world_outline: np.ndarray, height_m: float):
     """The pixel window (u0, u1, v0, v1) that can see the prism, or None: between the
     outline's projections at the floor and at the top face, one pixel of margin."""
-    # `CameraModel.world_to_pixel` at both heights (the same arithmetic), reduced to its extremes
     x0, y0, z0 = camera.position_m
-    dx, dy = world_outline[:, 0] - x0, world_outline[:, 1] - y0
-    us, vs = [], []
-    for depth in (z0 - 0.0, z0 - float(height_m)):
-        u = camera.cx_px + dx * camera.fx_px / depth
-        v = camera.cy_px - dy * camera.fy_px / depth
-        us += (u.min(), u.max())
-        vs += (v.min(), v.max())
-    u0 = max(math.floor(min(us)) - 1, 0)
-    u1 = min(math.ceil(max(us)) + 1, camera.width_px - 1)
-    v0 = max(math.floor(min(vs)) - 1, 0)
-    v1 = min(math.ceil(max(vs)) + 1, camera.height_px - 1)
+    umin, umax, vmin, vmax = _projected_extremes(
+        np.ascontiguousarray(world_outline, dtype=float), float(x0), float(y0), camera.cx_px,
+        camera.cy_px, camera.fx_px, camera.fy_px, z0 - 0.0, z0 - float(height_m),
+    )  # fmt: skip
+    u0 = max(math.floor(umin) - 1, 0)
+    u1 = min(math.ceil(umax) + 1, camera.width_px - 1)
+    v0 = max(math.floor(vmin) - 1, 0)
+    v1 = min(math.ceil(vmax) + 1, camera.height_px - 1)
     if u1 < u0 or v1 < v0:
         return None
     return u0, u1, v0, v1
+
+
+@njit(cache=True)
+def _projected_extremes(world, x0, y0, cx, cy, fx, fy, depth_a, depth_b):
+    """The extremes of the outline's pixel coordinates at two depths: `CameraModel.
+    world_to_pixel`'s arithmetic, point by point (a few us of numpy calls a frame)."""
+    umin = vmin = np.inf
+    umax = vmax = -np.inf
+    for depth in (depth_a, depth_b):
+        for i in range(world.shape[0]):
+            u = cx + (world[i, 0] - x0) * fx / depth
+            v = cy - (world[i, 1] - y0) * fy / depth
+            umin, umax = min(umin, u), max(umax, u)
+            vmin, vmax = min(vmin, v), max(vmax, v)
+    return umin, umax, vmin, vmax
 
 
 # A pixel whose top-face point lies this close to the outline is left to shapely's exact
@@ -71,26 +82,89 @@ def _ray_depth(tx, ty, bx, by, on_top, outline, hz, height):
 
 
 @njit(cache=True)
+def _boundary_distance(tx, ty, outline):
+    """Distance from the point (tx, ty) to the outline's boundary (object frame)."""
+    n = outline.shape[0]
+    best = np.inf
+    for i in range(n):
+        ax, ay = outline[i, 0], outline[i, 1]
+        j = i + 1 if i + 1 < n else 0
+        ex, ey = outline[j, 0] - ax, outline[j, 1] - ay
+        t = min(1.0, max(0.0, ((tx - ax) * ex + (ty - ay) * ey) / (ex * ex + ey * ey)))
+        dx, dy = ax + t * ex - tx, ay + t * ey - ty
+        best = min(best, dx * dx + dy * dy)
+    return math.sqrt(best)
+
+
+@njit(cache=True)
+def _near_or_inside(tx, ty, outline, near_m):
+    """Whether (tx, ty) lies within `near_m` of an edge (then undecided), else whether it is
+    inside: even-odd crossings of the ray to +x; an edge's ends as stored, so that a ray
+    through a vertex counts once (half-open in y)."""
+    n = outline.shape[0]
+    near2 = near_m * near_m
+    inside = False
+    for i in range(n):
+        ax, ay = outline[i, 0], outline[i, 1]
+        j = i + 1 if i + 1 < n else 0
+        qx, qy = outline[j, 0], outline[j, 1]
+        ex, ey = qx - ax, qy - ay
+        cr = ex * (ty - ay) - ey * (tx - ax)
+        if (
+            cr * cr <= near2 * (ex * ex + ey * ey)
+            and min(ax, qx) - near_m <= tx <= max(ax, qx) + near_m
+            and min(ay, qy) - near_m <= ty <= max(ay, qy) + near_m
+        ):
+            return True, False
+        if (ay > ty) != (qy > ty) and tx < ax + (ty - ay) * ex / ey:
+            inside = not inside
+    return False, inside
+
+
+# `_prism_kernel` fills the pixels after one it ray-cast without casting them while their
+# top-face points stay farther from the outline than this (m) beyond what the pixels' steps
+# and rays can cover: far above the arithmetic's rounding (~1e-17 m) and the near band
+PRISM_SKIP_GUARD_M = 1e-8
+
+
+@njit(cache=True)
 def _prism_kernel(outline, hz, height, cam, pose, win, out, near_m):
     """Ray-cast the window `win` = (u0, u1, v0, v1) of `out` (rows v, columns u).
 
     cam = (x0, y0, cx, cy, fx, fy), pose = (x, y, cos yaw, sin yaw). Returns the pixels
     whose top-face point is within `near_m` of the outline, left undecided (k, 6): v, u and
     the ray's top and floor points, for the caller to settle with an exact point-in-polygon.
+
+    Along a row, a pixel's top-face point moves by one pixel's width on the top face: after
+    a pixel ray-cast at distance d from the outline, the next pixels whose points stay
+    within d (less `PRISM_SKIP_GUARD_M`) are on the top face as it is, or, outside it, floor
+    as long as their rays (no longer than the row's longest) cannot reach a side wall either:
+    they take the depth the ray cast would give them, without it. A pixel beyond the near
+    band is decided by its crossings alone, and an outside one whose ray cannot reach the
+    outline is floor without its wall test.
     """
     x0, y0, cx, cy, fx, fy = cam
     px, py, c, s = pose
     u0, u1, v0, v1 = win
-    n = outline.shape[0]
     dtop = hz - height
-    near2 = near_m * near_m
     amb = np.empty((16, 6))
     k = 0
+    step = dtop / fx  # a pixel's width on the top face
+    guard = PRISM_SKIP_GUARD_M + 4.0 * near_m
     for v in range(v0, v1 + 1):
         fv = float(v)
         wyt = y0 - (fv - cy) * dtop / fy
         wyb = y0 - (fv - cy) * hz / fy
+        # the longest ray of the row from its top-face point to the floor (m)
+        ry = (fv - cy) * height / fy
+        rx = max(abs(float(u0) - cx), abs(float(u1) - cx)) * height / fx
+        ray = math.sqrt(rx * rx + ry * ry)
+        skip, fill = 0, hz
         for u in range(u0, u1 + 1):
+            if skip > 0:
+                out[v, u] = fill
+                skip -= 1
+                continue
             fu = float(u)
             dx = x0 + (fu - cx) * dtop / fx - px
             dy = wyt - py
@@ -98,25 +172,18 @@ def _prism_kernel(outline, hz, height, cam, pose, win, out, near_m):
             dx = x0 + (fu - cx) * hz / fx - px
             dy = wyb - py
             bx, by = c * dx + s * dy, -s * dx + c * dy
-            inside = False
-            near = False
-            for i in range(n):
-                ax, ay = outline[i, 0], outline[i, 1]
-                j = i + 1 if i + 1 < n else 0
-                qx, qy = outline[j, 0], outline[j, 1]
-                ex, ey = qx - ax, qy - ay
-                cr = ex * (ty - ay) - ey * (tx - ax)
-                if (
-                    cr * cr <= near2 * (ex * ex + ey * ey)
-                    and min(ax, qx) - near_m <= tx <= max(ax, qx) + near_m
-                    and min(ay, qy) - near_m <= ty <= max(ay, qy) + near_m
-                ):
-                    near = True
-                    break
-                # even-odd crossings of the ray to +x; an edge's ends as stored, so that a
-                # ray through a vertex counts once (half-open in y)
-                if (ay > ty) != (qy > ty) and tx < ax + (ty - ay) * ex / ey:
-                    inside = not inside
+            dist = _boundary_distance(tx, ty, outline)
+            if dist > guard:  # beyond the near band: no edge test can find it near
+                inside = _near_or_inside(tx, ty, outline, 0.0)[1]
+                clear = dist - guard - (0.0 if inside else ray)
+                if inside or clear > 0.0:  # the top face, or a ray that reaches no wall
+                    out[v, u] = dtop if inside else hz
+                else:
+                    out[v, u] = _ray_depth(tx, ty, bx, by, False, outline, hz, height)
+                if clear > step:
+                    skip, fill = int(clear / step), dtop if inside else hz
+                continue
+            near, inside = _near_or_inside(tx, ty, outline, near_m)
             if near:
                 if k == amb.shape[0]:
                     grown = np.empty((2 * k, 6))
