@@ -29,6 +29,12 @@ compiled loop (2,000 with `--pushes`, the smoke run), in us per pass (docs/perfo
 "What a step costs"); with `--baseline DIR` the same passes of DIR's floor_friction.py too,
 in the same run.
 
+`--convergence` instead prints docs/physics.md's convergence table: the rotation (deg) of an
+8 x 5 x 1.5 cm box pushed 1 cm beside its CoM (pusher mu 0.5, 3 cm at 40 and 4 cm/s, floor
+mu 0.1 and 1) at the default resolution, with slow steps off, 100 and 1600 samples, 0.5 and
+0.25 ms steps, and 0.25 ms with slow steps off (the case of
+`tests/test_planar.py::test_rotation_converges_in_the_grid_and_the_timestep`).
+
 `--pushes N` runs N of the 54 pushes, spread over the list (tests/test_bench.py's smoke run).
 """
 
@@ -47,6 +53,7 @@ from comexp.backends.floor_friction import FrictionSettings
 from comexp.backends.planar_sim import PlanarSimulator, SlowSteps
 from comexp.experiment.objects import com_point, load_objects
 from comexp.experiment.simulator import contact_push
+from comexp.method.geometry import box_object
 from comexp.method.scene import FloorSpec, SceneSpec, SimSettings
 
 OBJECTS = ("rect_8x5", "l_shape", "triangle_right_11x7")
@@ -118,6 +125,36 @@ RESOLUTIONS = (
     (400, 2.0, 5),
     (100, 2.0, 5),
 )
+
+
+CONVERGENCE_COLUMNS = (
+    ("default (400 samples, 1 ms, slow steps)", {}),
+    ("slow steps off", {"slow_steps": SlowSteps(steps=1)}),
+    ("100 samples", {"planar": replace(FrictionSettings(), samples=100)}),
+    ("1600 samples", {"planar": replace(FrictionSettings(), samples=1600)}),
+    ("0.5 ms", {"settings": replace(SimSettings(), timestep_s=0.0005)}),
+    ("0.25 ms", {"settings": replace(SimSettings(), timestep_s=0.00025)}),
+    (
+        "0.25 ms, slow steps off",
+        {"settings": replace(SimSettings(), timestep_s=0.00025), "slow_steps": SlowSteps(steps=1)},
+    ),
+)
+
+
+def convergence() -> None:
+    """docs/physics.md's convergence table, as Markdown."""
+    box = box_object(0.08, 0.05, 0.015, mu_pusher=0.5)
+    print("| floor mu | cm/s | " + " | ".join(c for c, _ in CONVERGENCE_COLUMNS) + " |")
+    print("|---|---|" + "---|" * len(CONVERGENCE_COLUMNS))
+    for mu in (0.1, 1.0):
+        for speed in (0.4, 0.04):
+            cmd = contact_push((-0.04, 0.01), (1.0, 0.0), 0.03, speed, 0.005)
+            rots = []
+            for _, kw in CONVERGENCE_COLUMNS:
+                sim = PlanarSimulator(**kw)
+                sim.build(SceneSpec(FloorSpec(mu, mu), box))
+                rots.append(f"{sim.push(cmd).rotation_deg:.3f}")
+            print(f"| {mu:.1f} | {speed * 100:g} | " + " | ".join(rots) + " |")
 
 
 def resolutions(all_cases) -> None:
@@ -211,7 +248,11 @@ def main() -> None:
     ap.add_argument("--pushes", type=int, help="only this many of the pushes, spread out")
     ap.add_argument("--resolutions", action="store_true", help="coarser settings vs default")
     ap.add_argument("--passes", action="store_true", help="CPU of one pass over the samples")
+    ap.add_argument("--convergence", action="store_true", help="docs/physics.md's table")
     args = ap.parse_args()
+    if args.convergence:
+        convergence()
+        return
     if args.passes:
         passes(2000 if args.pushes else 20000, args.baseline)
         return

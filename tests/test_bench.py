@@ -227,6 +227,12 @@ def test_planar_speed_smoke(monkeypatch, capfd):
     assert figure(r"Newton pass over {n} samples", out) > 300
     assert figure(r"Newton pass over \d+ samples: {n} us", out) > 0
     assert figure(r"line search pass over \d+ samples: {n} us", out) > 0
+    out = run_bench("planar_speed.py", "--convergence", monkeypatch=monkeypatch, capfd=capfd)
+    rows = [r for r in out.splitlines() if r.startswith(("| 0.1 |", "| 1.0 |"))]
+    assert len(rows) == 4
+    for r in rows:  # the default near the finest (0.25 ms, every step: docs/physics.md, 1.0%)
+        rot = [float(x) for x in r.strip("| ").split(" | ")[2:]]
+        assert len(rot) == 7 and abs(rot[0] - rot[-1]) < 0.015 * abs(rot[-1])
 
 
 def test_tracking_smoke(monkeypatch, capfd):
