@@ -162,8 +162,8 @@ def _solve_with_pusher(geo, normal, floor, xi_hat, dxw, dyw, dt, con, vqx, vqy, 
     free solve; if it would leave the pusher inside, the solve on the contact plane
     (`_plane_solve`). On a sustained push the free solve is the costly one (its object stops
     against the floor's friction at the norms' kink, where Newton takes up to `max_newton`
-    passes) and its answer is known: when the last step pushed (`lam0` > 0) the plane's solve
-    comes first, and the free solve is skipped when the plane's multiplier without the
+    iterations) and its answer is known: when the last step pushed (`lam0` > 0) the plane's
+    solve comes first, and the free solve is skipped when the plane's multiplier without the
     pusher's friction is positive: the free objective's minimum over the half space a . xi
     >= b is then on the plane, so its free minimiser is outside (convexity), as the free
     solve would have found. Otherwise (a push ending, or a push held by the pusher's
