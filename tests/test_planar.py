@@ -445,10 +445,10 @@ def _free_solve_first(geo, normal, xi_hat, dxw, dyw, dt, con, vq, mu_p, lam0):
 def test_the_plane_first_solve_makes_the_free_first_solve_s_choices():
     """`planar-9` solves a sustained push on the contact plane first and skips the free solve
     only when the frictionless plane's multiplier proves the free minimiser infeasible: bit
-    for bit the old order's answers, on random sustained pushes (anisotropic floors, pusher
-    mu 1, 1 and 5 ms steps). The sweep holds pushes the pusher's friction alone holds (the
-    plane's solve pushes, the free solve separates), where skipping on the plane's push
-    alone answers otherwise."""
+    for bit the old order's answers, on random sustained pushes (two anisotropic floors and
+    an isotropic one, pusher mu 1, 1 and 5 ms steps). The sweep holds pushes the pusher's
+    friction alone holds (the plane's solve pushes, the free solve separates), where skipping
+    on the plane's push alone answers otherwise."""
     from comexp.backends.floor_friction import offsets_kernel
     from comexp.backends.planar_sim import PlanarModel, _plane_solve, _solve_with_pusher
 
