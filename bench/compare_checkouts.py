@@ -19,12 +19,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+
+# A pool worker's thread pools, for either checkout: Ray sets OMP_NUM_THREADS=1 in its workers,
+# and a worker runs OpenCV on one thread (`comexp.workers.actor.use_one_cpu`, which an older
+# checkout lacks: OpenCV reads this variable when it loads)
+WORKER_THREADS = {"OMP_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1"}
 
 # Runs inside a checkout's venv, with that checkout's bench/ on the path.
 _CHILD = r"""
@@ -62,7 +68,7 @@ def run_child(tree: Path, args: argparse.Namespace, extra: list[str]) -> dict:
         out = f.name
     cmd = [str(tree / ".venv/bin/python"), "-c", _CHILD, args.backend, args.floor,
            str(args.speed), str(args.episodes), out, *extra]  # fmt: skip
-    subprocess.run(cmd, cwd=tree, check=True)
+    subprocess.run(cmd, cwd=tree, check=True, env={**os.environ, **WORKER_THREADS})
     return json.loads(Path(out).read_text())
 
 

@@ -275,6 +275,14 @@ def result_record(r: EpisodeResult) -> dict[str, Any]:
     }
 
 
+def use_one_cpu() -> None:
+    """This process's thread pools as a pool worker's (`comexp.workers.actor.use_one_cpu`):
+    the figures are one worker's, and OpenCV's spinning threads would add to its CPU."""
+    from comexp.workers.actor import use_one_cpu as worker_threads
+
+    worker_threads()
+
+
 def warm_up(specs: Sequence[EpisodeSpec], sim: Any) -> int:
     """Run the first episode of each object once, untimed (the engine's one-offs per object:
     compilation, scene caches); returns how many ran."""
@@ -622,6 +630,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="engines: CPU with the still steps jumped against stepped, alternating",
     )
     a = ap.parse_args(argv)
+    use_one_cpu()
     if a.still_jumps:
         with engine_stdout_silenced(not a.engine_output):
             lines = still_jumps_ab(a.backend, a.episodes, a.speed, a.floor)

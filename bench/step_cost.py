@@ -56,6 +56,7 @@ from episode_profile import (
     job_specs,
     source_digest,
     strided,
+    use_one_cpu,
 )
 
 from comexp.backends import floor_friction as ff
@@ -438,6 +439,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--floor", choices=("iso", "aniso"), default="iso")
     ap.add_argument("--raw-steps", type=int, default=2000, help="steps per raw-rate run")
     a = ap.parse_args(argv)
+    use_one_cpu()
     with engine_stdout_silenced():
         o = measure(a.backend, a.episodes, a.speed, a.floor, a.raw_steps)
     report(o)

@@ -7,6 +7,7 @@ worker processes import them; the tests directory is put on their PYTHONPATH.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from pathlib import Path
@@ -86,6 +87,16 @@ def fake_run(
         wall_s=sleep_s,
         detail=f"pid {os.getpid()} node {node}",
     )
+
+
+def threads_run(spec: EpisodeSpec, sim: FakeSimulator) -> EpisodeResult:
+    """An episode that reports the worker's native thread pools: OpenCV's threads and
+    OMP_NUM_THREADS (which OpenBLAS follows)."""
+    import cv2
+
+    result = fake_run(spec, sim, sleep_s=0.0)
+    omp = os.environ.get("OMP_NUM_THREADS")
+    return dataclasses.replace(result, detail=f"opencv {cv2.getNumThreads()} omp {omp}")
 
 
 def make_specs(n: int, obj: str = "box", start: int = 0) -> list[EpisodeSpec]:
@@ -172,6 +183,16 @@ def test_pool_runs_every_episode_once_and_streams(ray_session) -> None:
     assert len({r.detail for r in got}) == 2  # both workers took part
     assert len({r.worker for r in got}) == 2  # and each result says which one ran it
     assert all(r.worker.count(":") == 1 for r in got)
+
+
+def test_pool_workers_use_one_cpu_each(ray_session) -> None:
+    """A worker is one CPU: its libraries' thread pools run on one thread. OpenCV's pool
+    ignores OMP_NUM_THREADS; with two threads its idle one spins on the other worker's CPU
+    (`use_one_cpu`)."""
+    with _pool(runner="test_workers:threads_run", batch_size=2) as pool:
+        got = [r for chunk in pool.run(make_specs(8)) for r in chunk]
+    assert len({r.worker for r in got}) == 2
+    assert {r.detail for r in got} == {"opencv 1 omp 1"}
 
 
 def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None:

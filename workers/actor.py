@@ -123,6 +123,21 @@ class _Watchdog:
                 os._exit(70)
 
 
+def use_one_cpu() -> None:
+    """Keep this process's native thread pools to the one CPU a worker is given.
+
+    The pool gives each worker one CPU and runs as many workers as CPUs. Ray sets
+    OMP_NUM_THREADS=1 in its workers, which OpenBLAS follows; OpenCV's pool does not: it
+    ran perception's connected components on two threads, and its idle threads then spin
+    waiting for work, on the CPU of the other worker. In process on this machine kind a
+    planar episode took 31.1 ms of the process's CPU against 26.7 ms with one thread (iso
+    40 cm/s), MuJoCo 184.7 against 174.2 ms (aniso 4 cm/s); the results are the same bits
+    (docs/performance.md)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 class EpisodeWorker:
     """Plain class (testable without Ray); `RemoteEpisodeWorker` is its actor form.
 
@@ -141,6 +156,7 @@ class EpisodeWorker:
         kill_grace_s: float | None = None,
         backend_options: dict[str, Any] | None = None,
     ) -> None:
+        use_one_cpu()
         self.backend = backend
         # the backend's own options (e.g. floor_friction), passed to the simulator factory
         self.backend_options = dict(backend_options or {})
