@@ -146,6 +146,27 @@ def test_area_centroid_moments_of_a_rectangle():
     assert jy == pytest.approx(2 * 4**3 / 12)
 
 
+def _centroid_numpy(p: np.ndarray) -> np.ndarray:
+    """The shoelace centroid in numpy, as `centroid` computed it before its kernel."""
+    x, y = p[:, 0], p[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    a = 0.5 * np.sum(cross)
+    return np.array([np.sum((x + xn) * cross), np.sum((y + yn) * cross)]) / (6.0 * a)
+
+
+def test_the_compiled_centroid_has_the_numpy_form_s_bits():
+    """`_centroid_kernel` sums as NumPy does (pairwise, in blocks of 128): every vertex
+    count up to a block and beyond (the numpy form), star polygons at random offsets."""
+    rng = np.random.default_rng(11)
+    for n in [*range(3, 140), 200, 300]:
+        for _ in range(8):
+            t = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
+            r = rng.uniform(0.02, 0.06, n)
+            p = np.stack([r * np.cos(t), r * np.sin(t)], axis=1) + rng.normal(0.0, 0.1, 2)
+            np.testing.assert_array_equal(centroid(p), _centroid_numpy(p))
+
+
 def test_centroid_of_l_matches_shapely():
     poly = NONCONVEX["L"]
     c = Polygon(poly).centroid

@@ -7,6 +7,7 @@ import functools
 from collections.abc import Sequence
 
 import numpy as np
+from numba import njit
 
 from comexp.method.scene import ObjectSpec, Polygon2
 
@@ -26,15 +27,59 @@ def signed_area(poly: Sequence[Sequence[float]]) -> float:
 
 
 def centroid(poly: Sequence[Sequence[float]]) -> np.ndarray:
-    """Area centroid (shoelace). Every tracking frame asks for it: the next vertices are one
-    shifted copy of the polygon (np.roll's values, without its per-call overhead)."""
+    """Area centroid (shoelace). Every tracking frame asks for it (up to 64 vertices): up to
+    `_SUM_BLOCK` vertices in one compiled pass (`_centroid_kernel`), with the bits of the
+    numpy form below (tests/test_geometry.py)."""
     p = as_array(poly)
+    if len(p) <= _SUM_BLOCK:
+        return np.array(_centroid_kernel(np.ascontiguousarray(p)))
     x, y = p[:, 0], p[:, 1]
-    pn = np.concatenate((p[1:], p[:1]))
+    pn = np.concatenate((p[1:], p[:1]))  # the next vertices (np.roll's, without its overhead)
     xn, yn = pn[:, 0], pn[:, 1]
     cross = x * yn - xn * y
     a = 0.5 * np.sum(cross)
     return np.array([np.sum((x + xn) * cross), np.sum((y + yn) * cross)]) / (6.0 * a)
+
+
+# NumPy sums up to this many float64 in one block of its pairwise summation (PW_BLOCKSIZE)
+_SUM_BLOCK = 128
+
+
+@njit(cache=True)
+def _block_sum(a: np.ndarray) -> float:
+    """`np.sum(a)` for len(a) <= `_SUM_BLOCK`, as NumPy adds float64 (below 8 in order, else
+    8 running sums combined pairwise, then the rest in order), so that a compiled sum gives
+    the bits of the numpy expression it replaces. (Longer arrays NumPy splits in halves.)"""
+    n = a.shape[0]
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    r = a[:8].copy()
+    i = 8
+    while i < n - n % 8:
+        for k in range(8):
+            r[k] += a[i + k]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _centroid_kernel(p: np.ndarray) -> tuple[float, float]:
+    n = p.shape[0]
+    cross, mx, my = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(n):
+        j = i + 1 if i + 1 < n else 0
+        x, y, xn, yn = p[i, 0], p[i, 1], p[j, 0], p[j, 1]
+        c = x * yn - xn * y
+        cross[i], mx[i], my[i] = c, (x + xn) * c, (y + yn) * c
+    d = 6.0 * (0.5 * _block_sum(cross))
+    return _block_sum(mx) / d, _block_sum(my) / d
 
 
 def second_moments(poly: Sequence[Sequence[float]]) -> tuple[float, float]:

@@ -281,20 +281,35 @@ def mask_pusher(
     v1 = min(math.ceil(max(vs)) + 1, cam.height_px - 1)
     if u1 < u0 or v1 < v0:
         return img
-    d = depth[v0 : v1 + 1, u0 : u1 + 1]
-    vv, uu = np.nonzero(d < hz - MIN_HEIGHT_M)  # only what is above the floor can be it
-    if len(vv) == 0:
-        return img
-    dv = d[vv, uu]
-    # `CameraModel.pixel_to_world`'s x and y, without the stacking
-    px = x0 + ((uu + u0).astype(float) - cam.cx_px) * dv / cam.fx_px
-    py = y0 - ((vv + v0).astype(float) - cam.cy_px) * dv / cam.fy_px
-    hit = np.hypot(px - x, py - y) < r
-    if not hit.any():
-        return img
     out = depth.copy()
-    out[vv[hit] + v0, uu[hit] + u0] = hz
+    # only what is above the floor can be it (compared in the image's own precision)
+    below = depth.dtype.type(hz - MIN_HEIGHT_M)
+    view = np.array([x0, y0, cam.cx_px, cam.cy_px, cam.fx_px, cam.fy_px, x, y, r, hz])
+    if _mask_pusher_kernel(out, u0, v0, u1, v1, below, view) == 0:
+        return img
     return DepthImage(out, cam)
+
+
+@njit(cache=True)
+def _mask_pusher_kernel(out, u0, v0, u1, v1, below, view):
+    """`mask_pusher`'s pixels, set to the floor's depth in `out` (the image's copy) within
+    the window [u0, u1] x [v0, v1]; returns how many. `view`: camera position x, y, its
+    principal point and focal lengths (px), the pusher's axis x, y, its radius with the
+    margin, the floor's depth. Each pixel's back-projection is `CameraModel.pixel_to_world`'s
+    arithmetic, in the same order (the numpy form's bits: tests/test_frame_kernels.py)."""
+    x0, y0, cx, cy, fx, fy, x, y, r, hz = view
+    n = 0
+    for v in range(v0, v1 + 1):
+        for u in range(u0, u1 + 1):
+            d = out[v, u]
+            if not d < below:
+                continue
+            px = x0 + (float(u) - cx) * d / fx
+            py = y0 - (float(v) - cy) * d / fy
+            if np.hypot(px - x, py - y) < r:
+                out[v, u] = hz
+                n += 1
+    return n
 
 
 @dataclass(frozen=True)
@@ -333,22 +348,44 @@ def observe_boundary(
         vb = cam.cy_px - ((y - reach_m) - y0) * cam.fy_px / fl
         u0, u1 = max(int(ua), 0), min(int(math.ceil(ub)), w - 1)
         v0, v1 = max(int(va), 0), min(int(math.ceil(vb)), h - 1)
-    win = depth[v0 : v1 + 1, u0 : u1 + 1]
-    above = (np.isfinite(win) & (win < floor_depth_m(cam) - min_height_m)).view(np.uint8)
+    above = np.empty((max(v1 - v0 + 1, 0), max(u1 - u0 + 1, 0)), dtype=np.uint8)
+    below = depth.dtype.type(floor_depth_m(cam) - min_height_m)  # the image's precision
+    _above_floor(depth, u0, v0, below, above)
     contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         raise PerceptionError("no object above the floor in the tracking frame", "left_view")
-    c = max(contours, key=len)[:, 0, :]
-    if len(c) > max_points:
-        c = c[:: math.ceil(len(c) / max_points)]
-    cu, cv_ = c[:, 0] + u0, c[:, 1] + v0
-    dc = depth[cv_, cu]
-    # `CameraModel.pixel_to_world`'s x and y, without the stacking
-    contour = np.empty((len(c), 2))
-    contour[:, 0] = x0 + (cu.astype(float) - cam.cx_px) * dc / cam.fx_px
-    contour[:, 1] = y0 - (cv_.astype(float) - cam.cy_px) * dc / cam.fy_px
+    c = max(contours, key=len)
+    step = math.ceil(len(c) / max_points) if len(c) > max_points else 1
+    contour = np.empty(((len(c) + step - 1) // step, 2))
+    view = np.array([x0, y0, cam.cx_px, cam.cy_px, cam.fx_px, cam.fy_px])
+    _boundary_to_world(c, step, depth, u0, v0, view, contour)
     centre = polygon_centroid(contour) if len(contour) >= 3 else contour.mean(axis=0)
     return TrackingView(contour, centre)
+
+
+@njit(cache=True)
+def _above_floor(depth, u0, v0, below, above):
+    """`above` (uint8, the window's shape, at u0, v0): 1 where the depth is finite and less
+    than `below`, else 0."""
+    for i in range(above.shape[0]):
+        for j in range(above.shape[1]):
+            d = depth[v0 + i, u0 + j]
+            above[i, j] = 1 if np.isfinite(d) and d < below else 0
+
+
+@njit(cache=True)
+def _boundary_to_world(c, step, depth, u0, v0, view, out):
+    """Every `step`-th point of an OpenCV contour `c` ((n, 1, 2) window pixels u, v) on the
+    floor plane, each at its own depth: `CameraModel.pixel_to_world`'s x and y, in the same
+    arithmetic (tests/test_frame_kernels.py). `view`: camera position x, y, principal point
+    and focal lengths (px)."""
+    x0, y0, cx, cy, fx, fy = view
+    for k in range(out.shape[0]):
+        u = c[k * step, 0, 0] + u0
+        v = c[k * step, 0, 1] + v0
+        d = depth[v, u]
+        out[k, 0] = x0 + (float(u) - cx) * d / fx
+        out[k, 1] = y0 - (float(v) - cy) * d / fy
 
 
 def hull_region(hull_m: np.ndarray, spacing_m: float) -> np.ndarray:
