@@ -28,15 +28,19 @@ GATE_WAIT_S = 10.0  # only a broken run waits this long
 class FakeSimulator:
     builds = 0
 
-    def __init__(self, backend: str, **options) -> None:  # options: the backend's own
+    def __init__(self, backend: str, closed_marker_dir: str | None = None, **options) -> None:
+        # options: the backend's own (a command-line job's, tests/test_cli.py)
         if backend == "broken":
             raise RuntimeError("engine failed to start")
         self.backend = backend
         self.closed = False
+        self.closed_marker_dir = closed_marker_dir  # close() leaves a file there
         FakeSimulator.builds += 1
 
     def close(self) -> None:
         self.closed = True
+        if self.closed_marker_dir is not None:
+            Path(self.closed_marker_dir, f"closed-{os.getpid()}").touch()
 
 
 def fake_run(
@@ -193,6 +197,17 @@ def test_pool_workers_use_one_cpu_each(ray_session) -> None:
         got = [r for chunk in pool.run(make_specs(8)) for r in chunk]
     assert len({r.worker for r in got}) == 2
     assert {r.detail for r in got} == {"opencv 1 omp 1"}
+
+
+def test_closing_the_pool_closes_every_worker_s_simulator(ray_session, tmp_path) -> None:
+    """Workers are ended by a kill, which runs no cleanup: the pool has each close its
+    simulator first (pybullet's scene files in the temp dir were left behind)."""
+    pool = _pool(batch_size=2, backend_options={"closed_marker_dir": str(tmp_path)})
+    with pool:
+        got = [r for chunk in pool.run(make_specs(8)) for r in chunk]
+    pids = {r.detail.split()[1] for r in got}
+    assert len(pids) == 2
+    assert {p.name for p in tmp_path.iterdir()} == {f"closed-{pid}" for pid in pids}
 
 
 def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None:

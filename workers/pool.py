@@ -34,6 +34,9 @@ from .actor import (
 
 log = logging.getLogger("comexp.pool")
 
+# how long `EpisodePool.close` waits for its workers to close their simulators (s)
+CLOSE_WAIT_S = 5.0
+
 # `workers` (AUTO, DEFAULT_LOCAL_WORKERS, check_workers) is checked where the config is
 from comexp.experiment.config import AUTO, DEFAULT_LOCAL_WORKERS, check_workers  # noqa: E402
 
@@ -204,8 +207,20 @@ class EpisodePool:
         log.info("worker %d ready: pid %s on node %s", index, info.get("pid"), slot.where)
 
     def close(self) -> None:
-        for s in self._slots:
-            _kill(s.actor)
+        """Let every worker close its simulator, then end it: a killed process runs no
+        cleanup, and an engine leaves what it holds behind (pybullet's scene files in the
+        temp dir). A worker still busy after `CLOSE_WAIT_S` (an interrupted run) is ended
+        all the same."""
+        actors = [s.actor for s in self._slots if s.actor is not None]
+        closing = []
+        for a in actors:
+            with contextlib.suppress(Exception):
+                closing.append(a.close.remote())
+        if closing:
+            with contextlib.suppress(Exception):
+                ray.wait(closing, num_returns=len(closing), timeout=CLOSE_WAIT_S)
+        for a in actors:
+            _kill(a)
         self._slots = []
 
     def __enter__(self) -> EpisodePool:
