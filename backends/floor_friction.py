@@ -687,6 +687,16 @@ class FootprintFriction:
         n = self.normal.shape[0]
         self.dxw, self.dyw = np.zeros(n), np.zeros(n)  # offsets in world axes (offsets_kernel)
         _update_holding(self.geo, self.fs, self.normal)
+        self._fresh = (self.fs.copy(), self.normal.copy())
+
+    def reset(self) -> None:
+        """Back to the state it was made with (the object at rest, nothing cached), in place:
+        the same object on the same floor again costs no new samples or pressure."""
+        fs, normal = self._fresh
+        self.fs[:] = fs
+        self.normal[:] = normal
+        self.dxw[:] = 0.0
+        self.dyw[:] = 0.0
 
     @property
     def cop(self) -> np.ndarray:

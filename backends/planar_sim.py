@@ -467,6 +467,12 @@ class PlanarModel:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return np.array([[c, -s], [s, c]])
 
+    def reset(self) -> None:
+        """The state of a new model (at rest, flat, the friction's as made), in place."""
+        self.ms[:] = 0.0
+        self.geo.poly[:] = 0.0
+        self.fr.reset()
+
     def set_pose(self, x: float, y: float, yaw: float) -> None:
         """Object frame origin at (x, y), yaw; at rest."""
         self.ms[YAW] = yaw
@@ -542,6 +548,16 @@ def _model_tilt(m: PlanarModel) -> tuple:
     return (m.tilt_rad, tuple(m.tilt_direction()), m.tilt_axis_rate())
 
 
+def _same_physics(a: SceneSpec, b: SceneSpec) -> bool:
+    """Scenes whose models are the same but for the pose: object, floor and pusher."""
+    return (
+        (a.obj is b.obj or a.obj == b.obj)
+        and a.floor.mu_x == b.floor.mu_x
+        and a.floor.mu_y == b.floor.mu_y
+        and a.pusher == b.pusher
+    )
+
+
 class PlanarSimulator(Simulator):
     """`backend=planar`: the reference model behind the shared simulator interface."""
 
@@ -563,9 +579,14 @@ class PlanarSimulator(Simulator):
         self._camera = None
 
     def build(self, scene: SceneSpec) -> None:
-        self._scene = scene
+        """A new model, or the last one reset when only the pose changed (an episode re-centres
+        its object ~2 times at 40 cm/s; a model costs ~0.3 ms to make)."""
+        last, self._scene = self._scene, scene
         fl = scene.floor
-        self._model = PlanarModel(scene.obj, fl.mu_x, fl.mu_y, self.planar, scene.pusher)
+        if self._model is not None and last is not None and _same_physics(last, scene):
+            self._model.reset()
+        else:
+            self._model = PlanarModel(scene.obj, fl.mu_x, fl.mu_y, self.planar, scene.pusher)
         p = scene.initial_pose
         self._model.set_pose(p.x_m, p.y_m, p.yaw_rad)
         self._q = np.array(_PARK_XY_M, dtype=float)

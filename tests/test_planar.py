@@ -197,6 +197,38 @@ def test_the_same_episode_gives_the_same_numbers():
     assert a == b
 
 
+def test_a_rebuilt_scene_is_a_new_one_to_the_bit():
+    """`build` of the same object, floor and pusher at another pose (an episode re-centring
+    its object) resets the last model instead of making one: what then happens is what
+    happens on a new simulator, step by step. The first push is sustained on an anisotropic
+    floor and leaves the friction's caches and warm starts set."""
+    obj = box_object(0.08, 0.05, 0.015, com_m=(0.01, -0.005), mu_pusher=1.0)
+    scene = SceneSpec(FloorSpec(0.2, 1.0), obj)
+    again = replace(scene, initial_pose=Pose2D(0.02, -0.01, 0.7))
+    second = contact_push((-0.04, 0.012), (1.0, 0.0), 0.02, 0.04, 0.005)
+
+    used = PlanarSimulator()
+    used.build(scene)
+    first = used.push(contact_push((-0.04, 0.008), (1.0, 0.0), 0.03, 0.04, 0.005))
+    assert first.ok and abs(first.rotation_deg) > 0.1
+    model = used._model
+    used.build(again)
+    assert used._model is model  # reset, not made anew
+    fresh = PlanarSimulator()
+    fresh.build(again)
+    a, b = used._model, fresh._model
+    for state in ("ms", "fr.fs", "fr.normal", "fr.dxw", "fr.dyw", "geo.poly"):
+        owner, _, name = state.rpartition(".")
+        np.testing.assert_array_equal(
+            getattr(getattr(a, owner) if owner else a, name),
+            getattr(getattr(b, owner) if owner else b, name),
+            err_msg=state,
+        )
+    used.trace, fresh.trace = [], []
+    assert used.push(second) == fresh.push(second)
+    assert used.trace == fresh.trace and len(used.trace) > 100
+
+
 def test_rendered_pose_matches_the_state():
     """The camera is the exact ray-cast of the prism at the model's pose."""
     from comexp.method.observation import observe
