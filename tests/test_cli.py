@@ -424,6 +424,12 @@ def test_aniso_multirun_example(tmp_path: Path, local_ray) -> None:
     assert rows(db, "select count(*) from sweeps") == [(2,)]
     jobs = sorted(p.parent.name for p in (tmp_path / "results" / "multirun").glob("*/*/summary.md"))
     assert len(jobs) == 2 and "speed40" in jobs[0] and "speed4.0" in jobs[1]
+    # the second job ran on the first job's two workers (`job_pool`), which then closed
+    by_job = rows(db, "select count(distinct sweep_id), count(distinct worker) from episodes")
+    assert by_job == [(2, 2)]
+    from comexp.workers import pool
+
+    assert pool._kept is None
 
 
 def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path, local_ray) -> None:

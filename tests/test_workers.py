@@ -210,6 +210,25 @@ def test_closing_the_pool_closes_every_worker_s_simulator(ray_session, tmp_path)
     assert {p.name for p in tmp_path.iterdir()} == {f"closed-{pid}" for pid in pids}
 
 
+def test_a_job_pool_carries_its_workers_to_the_next_job_with_the_same_arguments(
+    ray_session,
+) -> None:
+    from comexp.workers.pool import close_job_pool, job_pool
+
+    args = dict(runner=RUNNER, simulator_factory=FACTORY, batch_size=2)
+    first = job_pool("fake", 2, **args)
+    pids = [{r.detail for c in first.run(make_specs(6)) for r in c} for _ in range(2)]
+    assert job_pool("fake", 2, **args) is first
+    again = {r.detail for c in first.run(make_specs(6)) for r in c}
+    assert pids[0] == pids[1] == again and len(again) == 2  # the same two processes
+    other = job_pool("fake", 2, **{**args, "batch_size": 3})  # other arguments: a new pool
+    assert other is not first and first._slots == []  # the last one closed
+    assert {r.detail for c in other.run(make_specs(6)) for r in c}.isdisjoint(again)
+    close_job_pool()
+    assert other._slots == [] and job_pool("fake", 2, **args) is not first
+    close_job_pool()
+
+
 def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None:
     specs = make_specs(10) + make_specs(1, "die_once") + make_specs(10, start=10)
     got: list[EpisodeResult] = []

@@ -9,6 +9,7 @@ job keeps what it finished.
 
 from __future__ import annotations
 
+import atexit
 import collections
 import contextlib
 import logging
@@ -237,7 +238,11 @@ class EpisodePool:
         bs = self.batch_size
         queue = collections.deque(_Batch(list(specs[i : i + bs])) for i in range(0, len(specs), bs))
         inflight: dict[Any, tuple[_Slot, _Batch]] = {}
-        starting: dict[Any, _Slot] = {}
+        # a worker a former run was replacing when it ended (a kept pool: `job_pool`)
+        starting: dict[Any, _Slot] = {
+            s.ready_ref: s for s in self._slots if s.ready_ref is not None
+        }
+        before = collections.Counter(self.stats.episodes_by_node)
         consecutive_deaths = 0
 
         def death(e: BaseException, doing: str) -> None:
@@ -328,7 +333,8 @@ class EpisodePool:
             consecutive_deaths = 0
             self.stats.episodes_by_node[slot.where] += len(results)
             yield results
-        by_node = ", ".join(f"{n} {c}" for n, c in sorted(self.stats.episodes_by_node.items()))
+        ran = self.stats.episodes_by_node - before
+        by_node = ", ".join(f"{n} {c}" for n, c in sorted(ran.items()))
         log.info("episodes per node: %s", by_node or "none")
 
     def _replace(self, slot: _Slot, starting: dict[Any, _Slot]) -> None:
@@ -392,6 +398,40 @@ class EpisodePool:
                     )
                 ]
         queue.extendleft(reversed(back))
+
+
+# the pool `job_pool` keeps for the next job of this process: (its arguments, the pool)
+_kept: tuple[str, EpisodePool] | None = None
+
+
+def job_pool(backend: str, workers: int | str | None = 2, **options: Any) -> EpisodePool:
+    """The pool of a `comexp` job: the last job's, its workers still running, when it was
+    made with the same arguments (the jobs of a multirun on one backend and physics: starting
+    two workers costs each job ~0.8 s), else a new one (the last one closed). The caller
+    closes it (`close_job_pool`) when a job fails or the process is done; at exit at the
+    latest (before Ray's own shutdown, which was registered first)."""
+    global _kept
+    key = repr((backend, workers, sorted(options.items())))
+    if _kept is not None and _kept[0] == key:
+        return _kept[1]
+    close_job_pool()
+    if not _exit_hook:
+        atexit.register(close_job_pool)
+        _exit_hook.append(True)
+    pool = EpisodePool(backend, workers, **options)
+    _kept = (key, pool)
+    return pool
+
+
+_exit_hook: list[bool] = []
+
+
+def close_job_pool() -> None:
+    """Close the pool `job_pool` keeps, if any."""
+    global _kept
+    kept, _kept = _kept, None
+    if kept is not None:
+        kept[1].close()
 
 
 def _kill(actor: Any) -> None:

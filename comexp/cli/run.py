@@ -332,7 +332,7 @@ def _run_todo(
     a new sweep; the kernels first (a local job's workers then load them), then Ray."""
     from comexp.workers.driver import Progress, run_and_store
     from comexp.workers.kernel_cache import warm_kernel_cache
-    from comexp.workers.pool import EpisodePool
+    from comexp.workers.pool import close_job_pool, job_pool
     from comexp.workers.session import ensure_ray
 
     options = simulator_options(exp)
@@ -350,7 +350,8 @@ def _run_todo(
         versions=_versions(),
         git_rev=_git_rev(),
     )
-    pool = EpisodePool(
+    # the last job's workers carry over when this job's are the same (`job_pool`)
+    pool = job_pool(
         exp.backend.name,
         exp.workers,
         batch_size=exp.execution.batch_size,
@@ -359,13 +360,16 @@ def _run_todo(
         episode_timeout_s=exp.execution.episode_timeout_s,
         backend_options=options,
     )
-    with pool:
+    try:
         stats = run_and_store(
             pool,
             todo,
             lambda rs: db.add_results(sweep_id, rs),
             progress=Progress(len(todo), desc=label),
         )
+    except BaseException:
+        close_job_pool()  # a run cut short leaves batches in flight: not a pool to reuse
+        raise
     failures = ", ".join(f"{k} {v}" for k, v in stats.failures.most_common())
     print(
         f"{label}: ran {stats.done} episodes in {stats.wall_s:.1f} s "
@@ -487,6 +491,16 @@ def _scrub_log_records(argv: list[str]) -> None:
     logging.setLogRecordFactory(factory)
 
 
+def _run_app() -> None:
+    """Hydra's app (every job of a multirun), then the workers the last job kept closed."""
+    try:
+        _app()
+    finally:
+        pool = sys.modules.get("comexp.workers.pool")  # imported by a job that ran
+        if pool is not None:
+            pool.close_job_pool()
+
+
 def main() -> None:
     """Console script. Hydra would print multi-line errors; we ask it to raise (unless the
     user set HYDRA_FULL_ERROR=1 to see everything) and print one line instead."""
@@ -503,7 +517,7 @@ def main() -> None:
     if show is not None:
         _show_jobs, sys.argv[1:] = show
     try:
-        _app()
+        _run_app()
     except Abort as e:
         if e.code:
             _die(e.message, e.code)
