@@ -67,7 +67,7 @@ from comexp.backends.numba_kernels import DirectCall, stamp_with_sources
 from comexp.backends.physics_settings import PLANAR, SlowSteps
 from comexp.experiment import clear_steps as clear_steps_module
 from comexp.experiment.clear_steps import clear_steps, closest_on_polygon
-from comexp.experiment.interface import Simulator
+from comexp.experiment.interface import ChunkStop, Simulator
 from comexp.method.rendering import render_prism_depth, render_prism_window_depth
 from comexp.method.scene import (
     GRAVITY_M_S2,
@@ -376,6 +376,49 @@ def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace, g
 
 
 @njit(cache=True)
+def _run_chunks(
+    geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, chunk, dt, mu_p, trace, group, v_slow,
+    stop, out,
+):  # fmt: skip
+    """`_run` over each whole chunk of `targets` in turn (the protocol's `_advance` calls,
+    one compiled call), stopping after the first chunk whose state `_stops` names; per
+    chunk run, `out` gets whether it pushed, its largest pitch (rad) and the yaw. Returns how
+    many chunks ran."""
+    n = targets.shape[0] // chunk
+    for c in range(n):
+        q = q_start if c == 0 else targets[c * chunk - 1]
+        seg = targets[c * chunk : (c + 1) * chunk]
+        touched, _ = _run(geo, fs, normal, dxw, dyw, pg, ms, q, seg, dt, mu_p, trace, group, v_slow)
+        out[c, 0] = 1.0 if touched else 0.0
+        out[c, 1] = ms[PITCH_MAX]
+        out[c, 2] = ms[YAW]
+        if _stops(pg, ms, stop):
+            return c + 1
+    return n
+
+
+@njit(cache=True)
+def _stops(pg, ms, stop):
+    """`ChunkStop`'s rule on the model state; `stop` = (x_lo, x_hi, y_lo, y_hi, rest speed,
+    rest spin): not finite, not flat, the object frame's origin outside the box, or (rest
+    speed > 0) the origin's |v_x| + |v_y| and |omega| below the rest limits."""
+    for i in range(XI_W + 1):
+        if not math.isfinite(ms[i]):
+            return True
+    if ms[PITCH] != 0.0 or ms[PITCH_W] != 0.0 or ms[OVER] != 0.0:
+        return True
+    c, s = math.cos(ms[YAW]), math.sin(ms[YAW])
+    r0 = c * pg.com[0] - s * pg.com[1]  # origin -> CoM
+    r1 = s * pg.com[0] + c * pg.com[1]
+    ox, oy = ms[G_X] - r0, ms[G_Y] - r1
+    if not (stop[0] <= ox <= stop[1] and stop[2] <= oy <= stop[3]):
+        return True
+    w = ms[XI_W]
+    v = abs(ms[XI_X] + w * r1) + abs(ms[XI_Y] - w * r0)
+    return stop[4] > 0.0 and v < stop[4] and abs(w) < stop[5]
+
+
+@njit(cache=True)
 def _pitch_rate_world(pg, ms):
     """The pitch rate as an angular velocity (world x, y): about the edge, z x n."""
     if ms[PITCH_W] == 0.0 or ms[OVER] != 0.0:
@@ -390,6 +433,7 @@ def _pitch_rate_world(pg, ms):
 # the steps above compile the friction kernels into their own machine code
 stamp_with_sources(globals(), floor_friction, clear_steps_module)
 _run_call = DirectCall(_run)  # every chunk of the protocol's steps, from Python
+_run_chunks_call = DirectCall(_run_chunks)  # chunks of them (`_advance_chunks`)
 
 
 class PlanarModel:
@@ -501,6 +545,28 @@ class PlanarModel:
             float(dt), float(mu_p), trace, int(slow.steps), float(slow.speed_m_s),
         )  # fmt: skip
 
+    def run_chunks(
+        self,
+        q0: np.ndarray,
+        targets: np.ndarray,
+        chunk: int,
+        dt: float,
+        mu_p: float,
+        stop: np.ndarray,
+        out: np.ndarray,
+        slow: SlowSteps,
+    ) -> int:
+        """`run` over each whole chunk of `targets`, stopping where `stop` says
+        (`_run_chunks`); how many chunks ran, their records in `out`."""
+        fr = self.fr
+        return _run_chunks_call(
+            fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw, self.geo, self.ms,
+            np.ascontiguousarray(q0, dtype=np.float64),
+            np.ascontiguousarray(targets, dtype=np.float64),
+            int(chunk), float(dt), float(mu_p), _NO_TRACE, int(slow.steps),
+            float(slow.speed_m_s), stop, out,
+        )  # fmt: skip
+
     def step(self, q0: np.ndarray, q1: np.ndarray, dt: float, mu_p: float) -> None:
         """Advance one step; the pusher moves from q0 to q1 (world, its centre) within it."""
         self.run(q0, np.asarray(q1, dtype=np.float64)[None, :], dt, mu_p, _NO_TRACE)
@@ -562,6 +628,7 @@ class PlanarSimulator(Simulator):
     """`backend=planar`: the reference model behind the shared simulator interface."""
 
     name = "planar"
+    batches_chunks = True  # `_advance_chunks`
     # the protocol's chunk of 10 steps (`Simulator.check_every_steps`): two slow steps
 
     def __init__(
@@ -655,6 +722,30 @@ class PlanarSimulator(Simulator):
         if len(targets):
             self._q = targets[-1].copy()
         return touched, math.degrees(m.ms[PITCH_MAX])
+
+    def _advance_chunks(
+        self, targets: np.ndarray, chunk: int, stop: ChunkStop
+    ) -> list[tuple[bool, float, float]]:
+        """`_advance` chunk after chunk in one compiled call (`PlanarModel.run_chunks`). The
+        pusher is kinematic (on its target after every step) and the model reports no
+        failures of its own. A traced run (`trace`) goes one chunk at a time."""
+        if self.trace is not None:
+            touched, tilt = self._advance(targets[:chunk])
+            return [(touched, tilt, self.object_state().pose.yaw_rad)]
+        m = self._require()
+        targets = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
+        n = len(targets) // chunk
+        out = np.empty((n, 3))
+        rule = np.array([*stop.box, stop.rest_speed_m_s, stop.rest_spin_rad_s])
+        mu_p = self._scene.obj.mu_pusher
+        dt = self.settings.timestep_s
+        done = m.run_chunks(self._q, targets, chunk, dt, mu_p, rule, out, self.slow_steps)
+        self._q = targets[done * chunk - 1].copy()
+        # the yaw as `object_state` reads it (`_object_state`)
+        return [
+            (bool(t), math.degrees(p), math.atan2(math.sin(y), math.cos(y)))
+            for t, p, y in out[:done].tolist()
+        ]
 
     def close(self) -> None:
         self._model = None

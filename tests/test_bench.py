@@ -154,7 +154,9 @@ def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
     assert figure(r"CPU {n} ms/episode", out) > 0
     assert "episode.py:" in out and "(run_episode)" in out
     step = re.search(
-        r"\n\s+([\d.]+)%\s+[\d.]+\s+[\d.]+\s+comexp\.backends\.planar_sim\._run \(compiled\)", out
+        r"\n\s+([\d.]+)%\s+[\d.]+\s+[\d.]+\s+comexp\.backends\.planar_sim\._run_chunks "
+        r"\(compiled\)",
+        out,
     )
     assert step and 0 < float(step.group(1)) < 100
 

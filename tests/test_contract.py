@@ -637,6 +637,30 @@ def test_surely_in_view_never_contradicts_the_exact_check():
     assert surely_in_view(0.0, 0.0, 0.05, camera)
 
 
+def test_inside_the_sure_view_box_the_view_is_sure():
+    """`surely_in_view_box`: an origin inside the box is surely in view, one a little outside
+    it (beyond its inset) is not: the box is the cheap test's own region, inset."""
+    from comexp.experiment.view import surely_in_view, surely_in_view_box
+    from comexp.method.scene import CameraSpec
+
+    camera = CameraSpec().model()
+    rng = np.random.default_rng(3)
+    for r in rng.uniform(0.01, 0.09, 50):
+        x_lo, x_hi, y_lo, y_hi = surely_in_view_box(float(r), camera, inset_m=1e-4)
+        assert x_lo < 0.0 < x_hi and y_lo < 0.0 < y_hi
+        xs, ys = rng.uniform(x_lo, x_hi, 200), rng.uniform(y_lo, y_hi, 200)
+        corners = [(x, y) for x in (x_lo, x_hi) for y in (y_lo, y_hi)]
+        for x, y in [*zip(xs, ys, strict=True), *corners]:
+            assert surely_in_view(float(x), float(y), float(r), camera)
+        for x, y in (
+            (x_lo - 2e-4, 0.0),
+            (x_hi + 2e-4, 0.0),
+            (0.0, y_lo - 2e-4),
+            (0.0, y_hi + 2e-4),
+        ):
+            assert not surely_in_view(x, y, float(r), camera)
+
+
 def test_start_overlapping_object_is_refused(sim):
     scene = SceneSpec(FloorSpec(0.5, 0.5), _box())
     sim.build(scene)

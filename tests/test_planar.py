@@ -346,6 +346,76 @@ def test_skipping_still_steps_changes_nothing_the_protocol_reports(speed_m_s):
         assert a[2], "the push has still frames (the approach, the hold): the test sees them"
 
 
+class _OneChunkAtATime(PlanarSimulator):
+    """planar without `_advance_chunks`: the protocol runs and checks one chunk per call."""
+
+    batches_chunks = False
+
+
+def _push_on_view(sim, floor, obj, pose, cmd, watch: bool):
+    """A push with the camera on (or off): its outcome, every frame's time, pusher and
+    image sum, the still times and the state after."""
+    sim.build(SceneSpec(floor, obj, initial_pose=pose))
+    frames, still = [], []
+    out = sim.push(
+        cmd,
+        on_frame=lambda f: frames.append((f.t_s, f.pusher_xy_m, float(f.image.depth_m.sum()))),
+        frame_interval_s=1.0 / 30.0 if watch else 0.0,
+        on_still=still.append,
+    )
+    return out, frames, still, sim.object_state()
+
+
+_BATCH_CASES = {  # floor, object, initial pose, push: every way a batch stops
+    "slide iso 40": (FloorSpec(0.3, 0.3), (0.0, 0.0, 0.3), (-0.05, 0.01), 0.4),
+    "sustained aniso 4": (FloorSpec(0.1, 1.0), (0.0, 0.0, 0.0), (-0.045, 0.012), 0.04),
+    "slide aniso 40": (FloorSpec(1.0, 0.1), (0.01, -0.02, 0.2), (-0.045, -0.01), 0.4),
+    "out of view": (FloorSpec(0.05, 0.05), (0.21, 0.0, 0.0), (0.165, 0.0), 0.4),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_BATCH_CASES))
+@pytest.mark.parametrize("watch", [True, False])
+def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(case, watch):
+    """planar runs the protocol's chunks between two due frames (or until its `ChunkStop`:
+    near rest, near the view's edge, tilted) in one compiled call; the outcome, the frames,
+    the still times and the state after are those of one chunk per call, to the bit."""
+    floor, pose, start, speed = _BATCH_CASES[case]
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
+    cmd = contact_push(start, (1.0, 0.0), 0.03, speed, 0.005)
+    batched = PlanarSimulator()
+    calls = []
+    run_chunks = batched._advance_chunks
+    batched._advance_chunks = lambda *a: calls.append(run_chunks(*a)) or calls[-1]
+    a = _push_on_view(batched, floor, obj, Pose2D(*pose), cmd, watch)
+    b = _push_on_view(_OneChunkAtATime(), floor, obj, Pose2D(*pose), cmd, watch)
+    assert a == b
+    assert max(len(c) for c in calls) >= 3  # chunks did run in one call
+    if case == "out of view":
+        assert a[0].status is PushStatus.LEFT_VIEW
+
+
+def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one():
+    """Past the tipping onset the object pitches, and a tall one tips over: the batch
+    stops where the object leaves the floor flat (`ChunkStop`), and the outcome and state
+    are those of one chunk per call."""
+    d = pusher_contact_height_m(PusherSpec(), 0.02) - 0.0005  # past the onset, as above
+    block = box_object(0.03, 0.03, 0.02, com_m=(0.015 - d, 0.0), mu_pusher=0.5)
+    cmd = contact_push((-0.015, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005)
+    floor, pose = FloorSpec(1.0, 1.0), Pose2D(0.0, 0.0, 0.0)
+    a = _push_on_view(PlanarSimulator(), floor, block, pose, cmd, True)
+    b = _push_on_view(_OneChunkAtATime(), floor, block, pose, cmd, True)
+    assert a == b and a[0].max_tilt_deg > 2.0
+    # and one that tips over (the protocol's TIPPED at the chunk where it passes the limit)
+    tall = prism_object("tall", [(-0.01, -0.01), (0.01, -0.01), (0.01, 0.01), (-0.01, 0.01)],
+                        0.12, (0, 0))  # fmt: skip
+    cmd = contact_push((-0.01, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005)
+    for watch in (True, False):
+        a = _push_on_view(PlanarSimulator(), floor, tall, pose, cmd, watch)
+        b = _push_on_view(_OneChunkAtATime(), floor, tall, pose, cmd, watch)
+        assert a == b and a[0].status is PushStatus.TIPPED
+
+
 def test_steps_declared_still_that_move_the_object_are_an_error():
     class Liar(PlanarSimulator):
         def _steps_still(self, targets):

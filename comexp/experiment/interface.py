@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from comexp.experiment.contact import pusher_clearance_m
-from comexp.experiment.view import outline_radius_m, surely_in_view
+from comexp.experiment.view import outline_radius_m, surely_in_view, surely_in_view_box
 from comexp.method.scene import (
     CameraModel,
     DepthImage,
@@ -91,6 +91,22 @@ class Frame:
     pusher_radius_m: float
 
 
+@dataclass(frozen=True)
+class ChunkStop:
+    """Where a backend that runs several of the protocol's chunks in one call
+    (`Simulator._advance_chunks`) stops, so that the protocol's own check sees that chunk's
+    state: after a chunk that leaves the state not finite, the object not flat on the floor,
+    its frame's origin outside `box` (x_lo, x_hi, y_lo, y_hi: `surely_in_view_box`), or, when
+    `rest_speed_m_s` > 0, the object near rest (the origin's |v_x| + |v_y| below
+    `rest_speed_m_s` and |omega_z| below `rest_spin_rad_s`: twice the settle limits, a
+    superset of `at_rest`). Every chunk it does not stop after is one the check passes
+    without a failure, a frame or a rest."""
+
+    box: tuple[float, float, float, float]
+    rest_speed_m_s: float = 0.0
+    rest_spin_rad_s: float = 0.0
+
+
 def classify_state(
     state: ObjectState,
     outline_m: np.ndarray,
@@ -144,6 +160,9 @@ class Simulator(ABC):
     # settings.py: the pusher's clearance beyond a step's length, the most tilt an object at
     # rest by the settle rule may have); None: still steps are stepped
     still_jumps: Any = None
+    # `_advance_chunks` runs several chunks in one call (the backend's pusher is then on its
+    # target after every chunk, and the backend has no failures of its own: `_engine_failure`)
+    batches_chunks: bool = False
 
     def __init__(self, settings: SimSettings | None = None) -> None:
         self.settings = settings or SimSettings()
@@ -250,6 +269,15 @@ class Simulator(ABC):
         """Put the pusher where, and moving as, `_advance(targets)` would leave it, without
         stepping; no contact. A backend that sets `still_jumps` implements it."""
         raise NotImplementedError(f"{self.name}: still_jumps set without _jump_pusher")
+
+    def _advance_chunks(
+        self, targets: np.ndarray, chunk: int, stop: ChunkStop
+    ) -> list[tuple[bool, float, float]]:
+        """With `batches_chunks`: advance the whole chunks of `targets` (`chunk` steps each,
+        every one exactly as an `_advance` call of it), stopping after the first one whose
+        state `stop` names; per chunk advanced, (touched, its tilt as `_advance` returns it,
+        the yaw `object_state().pose.yaw_rad` would then read)."""
+        raise NotImplementedError(f"{self.name}: batches_chunks set without _advance_chunks")
 
     def _engine_failure(self) -> PushStatus | None:
         """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
@@ -380,13 +408,19 @@ def at_rest(state: ObjectState, s: SimSettings) -> bool:
     )
 
 
+# settle: the most chunks `_PushRun.advance` is handed at once (a batching backend's call)
+SETTLE_BATCH_CHUNKS = 64
+
+
 class _PushRun:
     """One push under way (`Simulator.push`): the protocol's three phases and its checks.
 
     The pusher advances in chunks of `check_every_steps` steps; after each chunk the object's
     state is checked (failures, the turn so far, the settle rule) and, when due, a tracking
-    frame is taken. Steps that provably cannot move the object are advanced without checks
-    (`skip_still`). The counters (steps, contact, turn, tilt, frames) become the outcome.
+    frame is taken. A backend may run the chunks between two due frames in one call,
+    stopping wherever a check could conclude anything (`advance`, `ChunkStop`). Steps that
+    provably cannot move the object are advanced without checks (`skip_still`). The counters
+    (steps, contact, turn, tilt, frames) become the outcome.
     """
 
     def __init__(
@@ -421,10 +455,11 @@ class _PushRun:
         self.n_frames = 0
         self.last_yaw = before.pose.yaw_rad
         self.turned = 0.0
+        self.box: tuple[float, float, float, float] | None = None  # `ChunkStop`'s, once asked
 
     def _frame_due(self, t_s: float) -> bool:
         """A frame is due at `t_s`: if so, the next one is due a frame interval later."""
-        if not (self.watch and t_s >= self.next_frame_s - 1e-9):
+        if not self._due_at(t_s):
             return False
         fi = self.frame_interval_s
         self.next_frame_s = (math.floor(t_s / fi + 1e-9) + 1) * fi
@@ -454,9 +489,53 @@ class _PushRun:
 
     def run(self, targets: np.ndarray, driving: bool = False) -> ObjectState:
         """Advance one chunk of steps, then check: failures, turn, tilt, a due frame."""
+        touched, tilt = self.sim._advance(targets)
+        return self._check(len(targets), touched, tilt, driving)
+
+    def advance(
+        self, targets: np.ndarray, driving: bool = False, near_rest: bool = False
+    ) -> tuple[int, ObjectState]:
+        """`run` the first chunk of `targets`; returns the steps advanced and the state.
+
+        A backend that batches chunks (`Simulator.batches_chunks`) runs the whole chunks up
+        to the first at which a frame is due in one call, stopping early where its
+        `ChunkStop` says (`near_rest`: near rest too, for the settle rule); the chunks it
+        passes get the bookkeeping their checks would do (`_passed`), the last one the full
+        check. The steps, and what the checks conclude, are those of one `run` after
+        another (tests/test_planar.py)."""
+        sim, chunk = self.sim, self.chunk
+        n = len(targets) // chunk
+        k = 1
+        while sim.batches_chunks and k < n and not self._due_at((self.steps + k * chunk) * self.dt):
+            k += 1
+        if k == 1:
+            return len(targets[:chunk]), self.run(targets[:chunk], driving)
+        rest = (2.0 * self.s.settle_speed_m_s, 2.0 * self.s.settle_spin_rad_s) if near_rest else ()
+        if self.box is None:
+            self.box = surely_in_view_box(self.radius, self.camera)
+        done = sim._advance_chunks(targets[: k * chunk], chunk, ChunkStop(self.box, *rest))
+        for touched, tilt, yaw in done[:-1]:
+            self._passed(chunk, touched, tilt, yaw)
+        touched, tilt, _ = done[-1]
+        return len(done) * chunk, self._check(chunk, touched, tilt, driving)
+
+    def _passed(self, n: int, touched: bool, tilt: float, yaw: float) -> None:
+        """A chunk the backend ran past (`advance`): the check's bookkeeping of a state that
+        is finite, flat, surely in view, not at rest and due no frame."""
+        self.steps += n
+        self.contact = self.contact or touched
+        self.turned += wrap_angle(yaw - self.last_yaw)
+        self.last_yaw = yaw
+        self.max_tilt = max(self.max_tilt, tilt, 0.0)
+
+    def _due_at(self, t_s: float) -> bool:
+        """`_frame_due`'s test, without its bookkeeping."""
+        return self.watch and t_s >= self.next_frame_s - 1e-9
+
+    def _check(self, n: int, touched: bool, tilt: float, driving: bool) -> ObjectState:
+        """After a chunk of `n` steps: failures, turn, tilt, a due frame."""
         sim, s = self.sim, self.s
-        touched, tilt = sim._advance(targets)
-        self.steps += len(targets)
+        self.steps += n
         self.contact = self.contact or touched
         st = sim.object_state()
         if st.is_finite:  # < half a turn between two checks (a few ms apart)
@@ -486,16 +565,15 @@ class _PushRun:
     def drive(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
         """1) The straight path at the commanded speed; the pusher is where the path is at
         the end of each step."""
-        dt, chunk = self.dt, self.chunk
+        dt = self.dt
         n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
         travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
         path = start + travelled[:, None] * direction  # the pusher at the end of every step
         k = self.skip_still(path)
         while k < n_move and self.status is None:
-            targets = path[k : k + chunk]
-            self.run(targets, driving=True)
-            k += len(targets)
-            dx, dy = (self.sim._pusher_xy() - targets[-1]).tolist()
+            n, _ = self.advance(path[k:], driving=True)
+            k += n
+            dx, dy = (self.sim._pusher_xy() - path[k - 1]).tolist()
             self.lag = max(self.lag, math.hypot(dx, dy))
 
     def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
@@ -506,11 +584,16 @@ class _PushRun:
         s, dt, chunk = self.s, self.dt, self.chunk
         hold_checks = max(1, math.ceil(s.settle_hold_s / (dt * chunk) - 1e-9))
         quiet = 0
-        held = np.repeat(start[None, :] + cmd.travel_m * direction[None, :], chunk, axis=0)
-        for _ in range(max(1, math.ceil(s.max_settle_s / (dt * chunk)))):
-            st = self.run(held)
+        checks = max(1, math.ceil(s.max_settle_s / (dt * chunk)))
+        end = start + cmd.travel_m * direction
+        held = np.repeat(end[None, :], chunk * min(checks, SETTLE_BATCH_CHUNKS), axis=0)
+        while checks > 0:
+            n, st = self.advance(held[: chunk * checks], near_rest=True)
+            checks -= n // chunk
             if self.status is not None:
                 return
+            if n > chunk:  # the chunks passed were not at rest (`ChunkStop`)
+                quiet = 0
             if at_rest(st, s):
                 quiet += 1
                 left = (hold_checks - quiet) * chunk

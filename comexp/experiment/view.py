@@ -39,6 +39,26 @@ def surely_in_view(x_m: float, y_m: float, radius_m: float, camera: CameraModel)
     )
 
 
+def surely_in_view_box(
+    radius_m: float, camera: CameraModel, inset_m: float = 1e-4
+) -> tuple[float, float, float, float]:
+    """(x_lo, x_hi, y_lo, y_hi): the floor box where the object frame's origin keeps
+    `surely_in_view(x, y, radius_m, camera)` true, `inset_m` inside the box its four
+    inequalities bound (the inset is far above their rounding). A backend that runs several
+    of the protocol's chunks in one call (`Simulator._advance_chunks`) stops where the origin
+    leaves it, for the protocol's exact check."""
+    x0, y0, z0 = camera.position_m
+    r = radius_m * (1.0 + 1e-9) + 1e-12
+    kx, ky = camera.fx_px / z0, camera.fy_px / z0
+    margin = 1e-6
+    return (
+        x0 + r + (margin - camera.cx_px) / kx + inset_m,
+        x0 - r + (camera.width_px - 1 - margin - camera.cx_px) / kx - inset_m,
+        y0 + r + (camera.cy_px - (camera.height_px - 1 - margin)) / ky + inset_m,
+        y0 - r + (camera.cy_px - margin) / ky - inset_m,
+    )
+
+
 def object_window_px(
     camera: CameraModel,
     outline_m: np.ndarray,
