@@ -378,12 +378,12 @@ def _run(geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, dt, mu_p, trace, g
 @njit(cache=True)
 def _run_chunks(
     geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, chunk, dt, mu_p, trace, group, v_slow,
-    stop, out,
+    stop, rest_after, out,
 ):  # fmt: skip
     """`_run` over each whole chunk of `targets` in turn (the protocol's `_advance` calls,
-    one compiled call), stopping after the first chunk whose state `_stops` names; per
-    chunk run, `out` gets whether it pushed, its largest pitch (rad) and the yaw. Returns how
-    many chunks ran."""
+    one compiled call), stopping after the first chunk whose state `_stops` names (the rest
+    rule after those `rest_after` marks); per chunk run, `out` gets whether it pushed, its
+    largest pitch (rad) and the yaw. Returns how many chunks ran."""
     n = targets.shape[0] // chunk
     for c in range(n):
         q = q_start if c == 0 else targets[c * chunk - 1]
@@ -392,16 +392,16 @@ def _run_chunks(
         out[c, 0] = 1.0 if touched else 0.0
         out[c, 1] = ms[PITCH_MAX]
         out[c, 2] = ms[YAW]
-        if _stops(pg, ms, stop):
+        if _stops(pg, ms, stop, rest_after[c]):
             return c + 1
     return n
 
 
 @njit(cache=True)
-def _stops(pg, ms, stop):
+def _stops(pg, ms, stop, rest):
     """`ChunkStop`'s rule on the model state; `stop` = (x_lo, x_hi, y_lo, y_hi, rest speed,
-    rest spin): not finite, not flat, the object frame's origin outside the box, or (rest
-    speed > 0) the origin's |v_x| + |v_y| and |omega| below the rest limits."""
+    rest spin): not finite, not flat, the object frame's origin outside the box, or (`rest`)
+    the origin's |v_x| + |v_y| and |omega| below the rest limits."""
     for i in range(XI_W + 1):
         if not math.isfinite(ms[i]):
             return True
@@ -415,7 +415,7 @@ def _stops(pg, ms, stop):
         return True
     w = ms[XI_W]
     v = abs(ms[XI_X] + w * r1) + abs(ms[XI_Y] - w * r0)
-    return stop[4] > 0.0 and v < stop[4] and abs(w) < stop[5]
+    return rest and v < stop[4] and abs(w) < stop[5]
 
 
 @njit(cache=True)
@@ -553,18 +553,19 @@ class PlanarModel:
         dt: float,
         mu_p: float,
         stop: np.ndarray,
+        rest_after: np.ndarray,
         out: np.ndarray,
         slow: SlowSteps,
     ) -> int:
-        """`run` over each whole chunk of `targets`, stopping where `stop` says
-        (`_run_chunks`); how many chunks ran, their records in `out`."""
+        """`run` over each whole chunk of `targets`, stopping where `stop` and `rest_after`
+        say (`_run_chunks`); how many chunks ran, their records in `out`."""
         fr = self.fr
         return _run_chunks_call(
             fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw, self.geo, self.ms,
             np.ascontiguousarray(q0, dtype=np.float64),
             np.ascontiguousarray(targets, dtype=np.float64),
             int(chunk), float(dt), float(mu_p), _NO_TRACE, int(slow.steps),
-            float(slow.speed_m_s), stop, out,
+            float(slow.speed_m_s), stop, rest_after, out,
         )  # fmt: skip
 
     def step(self, q0: np.ndarray, q1: np.ndarray, dt: float, mu_p: float) -> None:
@@ -739,7 +740,8 @@ class PlanarSimulator(Simulator):
         rule = np.array([*stop.box, stop.rest_speed_m_s, stop.rest_spin_rad_s])
         mu_p = self._scene.obj.mu_pusher
         dt = self.settings.timestep_s
-        done = m.run_chunks(self._q, targets, chunk, dt, mu_p, rule, out, self.slow_steps)
+        rest = np.ascontiguousarray(stop.rest_after[:n], dtype=np.bool_)
+        done = m.run_chunks(self._q, targets, chunk, dt, mu_p, rule, rest, out, self.slow_steps)
         self._q = targets[done * chunk - 1].copy()
         # the yaw as `object_state` reads it (`_object_state`)
         return [

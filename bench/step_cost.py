@@ -18,8 +18,8 @@ slice, vision and the default camera):
   compiled chunks, `push_steps`, timed one by one, the friction kernel's replay taken off:
   Bullet's step with the C commands that drive it (from Python, without the compiled steps:
   its `stepSimulation` calls); MuJoCo's chunks replayed from their saved states as
-  `mj_step(m, d, n)`; planar's compiled chunks, `_run`, timed one by one: its friction
-  solve is inside its step), in a second run of each episode right after its timed one
+  `mj_step(m, d, n)`; planar's compiled calls (`_run`, `_run_chunks`) timed one by one: its
+  friction solve is inside its step), in a second run of each episode right after its timed one
   (builds are full resets, so it takes the same steps). Beside it, the same call on each
   episode's built scene at rest (object resting, pusher parked): a pusher contact and a
   sliding object make a step dearer, so the resting step alone understates the floor;
@@ -212,7 +212,8 @@ class EngineStepsInPushes:
 
     def _timed_in_pushes(self, step: Any, steps_of: Any) -> Any:
         """`step` timed call by call on the thread's CPU clock (its own cost, calibrated,
-        taken off) while a push is under way; `steps_of(args)`: the steps one call runs."""
+        taken off) while a push is under way; `steps_of(args, result)`: the steps one call
+        ran."""
         clock = time.thread_time
         t0 = clock()
         for _ in range(1000):
@@ -225,7 +226,7 @@ class EngineStepsInPushes:
             t0 = clock()
             out = step(*a, **k)
             self.s += clock() - t0 - own
-            self.steps += steps_of(a)
+            self.steps += steps_of(a, out)
             return out
 
         push = self.sim.push
@@ -248,19 +249,26 @@ class EngineStepsInPushes:
 
             # push_steps(handle, pusher, object, z, targets, ...): a step per target
             self._pbsim, self._step = pybullet_sim, pybullet_sim._push_steps_call
-            pybullet_sim._push_steps_call = self._timed_in_pushes(self._step, lambda a: len(a[4]))
+            pybullet_sim._push_steps_call = self._timed_in_pushes(
+                self._step, lambda a, out: len(a[4])
+            )
             self.kernel_inside = True
         elif sim.name == "pybullet":
             import pybullet as pb
 
             self._pb, self._step = pb, pb.stepSimulation
-            pb.stepSimulation = self._timed_in_pushes(self._step, lambda a: 1)
+            pb.stepSimulation = self._timed_in_pushes(self._step, lambda a, out: 1)
         elif sim.name == "planar":
             from comexp.backends import planar_sim
 
-            # the protocol's steps of a chunk (its model takes fewer where `SlowSteps` groups)
-            self._planar, self._step = planar_sim, planar_sim._run_call
-            planar_sim._run_call = self._timed_in_pushes(self._step, lambda a: len(a[8]))
+            # the protocol's steps of a chunk (its model takes fewer where `SlowSteps` groups),
+            # and of the chunks run in one call (`_run_chunks`: how many ran x the chunk)
+            self._planar = planar_sim
+            self._step = planar_sim._run_call, planar_sim._run_chunks_call
+            planar_sim._run_call = self._timed_in_pushes(self._step[0], lambda a, out: len(a[8]))
+            planar_sim._run_chunks_call = self._timed_in_pushes(
+                self._step[1], lambda a, out: out * a[9]
+            )
         elif sim.name == "mujoco":
             import mujoco
 
@@ -307,7 +315,7 @@ class EngineStepsInPushes:
             self._pb.stepSimulation = self._step
             self._restore_push()
         elif self.sim.name == "planar":
-            self._planar._run_call = self._step
+            self._planar._run_call, self._planar._run_chunks_call = self._step
             self._restore_push()
         elif self.sim.name == "mujoco":
             del self.sim._friction_steps  # back to the class's method

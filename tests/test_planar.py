@@ -352,47 +352,60 @@ class _OneChunkAtATime(PlanarSimulator):
     batches_chunks = False
 
 
-def _push_on_view(sim, floor, obj, pose, cmd, watch: bool):
+def _push_on_view(sim, floor, obj, pose, cmd, watch: bool, every: int = 1):
     """A push with the camera on (or off): its outcome, every frame's time, pusher and
-    image sum, the still times and the state after."""
+    image sum, the still times and the state after. `every` > 1: a tracker that wants every
+    `every`-th due frame (`frame_wanted`, asked ahead by a batching backend)."""
     sim.build(SceneSpec(floor, obj, initial_pose=pose))
     frames, still = [], []
+
+    def wanted(t_s: float, driving: bool) -> bool:
+        return round(t_s * 30.0) % every == 0
+
     out = sim.push(
         cmd,
         on_frame=lambda f: frames.append((f.t_s, f.pusher_xy_m, float(f.image.depth_m.sum()))),
         frame_interval_s=1.0 / 30.0 if watch else 0.0,
         on_still=still.append,
+        frame_wanted=wanted if every > 1 else None,
     )
     return out, frames, still, sim.object_state()
 
 
-_BATCH_CASES = {  # floor, object, initial pose, push: every way a batch stops
-    "slide iso 40": (FloorSpec(0.3, 0.3), (0.0, 0.0, 0.3), (-0.05, 0.01), 0.4),
-    "sustained aniso 4": (FloorSpec(0.1, 1.0), (0.0, 0.0, 0.0), (-0.045, 0.012), 0.04),
-    "slide aniso 40": (FloorSpec(1.0, 0.1), (0.01, -0.02, 0.2), (-0.045, -0.01), 0.4),
-    "out of view": (FloorSpec(0.05, 0.05), (0.21, 0.0, 0.0), (0.165, 0.0), 0.4),
+_BATCH_CASES = {  # floor, initial pose, contact, speed, push length: every way a batch stops
+    "slide iso 40": (FloorSpec(0.3, 0.3), (0.0, 0.0, 0.3), (-0.05, 0.01), 0.4, 0.03),
+    "sustained aniso 4": (FloorSpec(0.1, 1.0), (0.0, 0.0, 0.0), (-0.045, 0.012), 0.04, 0.03),
+    "slide aniso 40": (FloorSpec(1.0, 0.1), (0.01, -0.02, 0.2), (-0.045, -0.01), 0.4, 0.03),
+    "out of view": (FloorSpec(0.05, 0.05), (0.21, 0.0, 0.0), (0.165, 0.0), 0.4, 0.03),
+    # a path of 115 steps: it ends in part of a chunk
+    "part of a chunk": (FloorSpec(0.3, 0.3), (0.0, 0.0, 0.0), (-0.04, 0.01), 0.4, 0.0357),
 }
 
 
 @pytest.mark.parametrize("case", sorted(_BATCH_CASES))
-@pytest.mark.parametrize("watch", [True, False])
-def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(case, watch):
-    """planar runs the protocol's chunks between two due frames (or until its `ChunkStop`:
-    near rest, near the view's edge, tilted) in one compiled call; the outcome, the frames,
-    the still times and the state after are those of one chunk per call, to the bit."""
-    floor, pose, start, speed = _BATCH_CASES[case]
+@pytest.mark.parametrize(("watch", "every"), [(True, 1), (True, 3), (False, 1)])
+def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(case, watch, every):
+    """planar runs the protocol's chunks up to the next frame it renders (or until its
+    `ChunkStop`: near rest, near the view's edge, tilted) in one compiled call, past the due
+    frames the tracker declines; the outcome, the frames, the still times and the state
+    after are those of one chunk per call, to the bit."""
+    floor, pose, start, speed, length = _BATCH_CASES[case]
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
-    cmd = contact_push(start, (1.0, 0.0), 0.03, speed, 0.005)
+    cmd = contact_push(start, (1.0, 0.0), length, speed, 0.005)
     batched = PlanarSimulator()
     calls = []
     run_chunks = batched._advance_chunks
     batched._advance_chunks = lambda *a: calls.append(run_chunks(*a)) or calls[-1]
-    a = _push_on_view(batched, floor, obj, Pose2D(*pose), cmd, watch)
-    b = _push_on_view(_OneChunkAtATime(), floor, obj, Pose2D(*pose), cmd, watch)
+    a = _push_on_view(batched, floor, obj, Pose2D(*pose), cmd, watch, every)
+    b = _push_on_view(_OneChunkAtATime(), floor, obj, Pose2D(*pose), cmd, watch, every)
     assert a == b
+    if every > 1:  # past declined frames: longer calls than between two due frames (3.3)
+        assert max(len(c) for c in calls) >= 5
     assert max(len(c) for c in calls) >= 3  # chunks did run in one call
     if case == "out of view":
         assert a[0].status is PushStatus.LEFT_VIEW
+    if case == "part of a chunk":
+        assert math.ceil(cmd.travel_m / (speed * 1e-3) - 1e-9) % 10 != 0
 
 
 def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one():

@@ -96,15 +96,16 @@ class ChunkStop:
     """Where a backend that runs several of the protocol's chunks in one call
     (`Simulator._advance_chunks`) stops, so that the protocol's own check sees that chunk's
     state: after a chunk that leaves the state not finite, the object not flat on the floor,
-    its frame's origin outside `box` (x_lo, x_hi, y_lo, y_hi: `surely_in_view_box`), or, when
-    `rest_speed_m_s` > 0, the object near rest (the origin's |v_x| + |v_y| below
-    `rest_speed_m_s` and |omega_z| below `rest_spin_rad_s`: twice the settle limits, a
+    its frame's origin outside `box` (x_lo, x_hi, y_lo, y_hi: `surely_in_view_box`), or,
+    after the chunks `rest_after` marks, the object near rest (the origin's |v_x| + |v_y|
+    below `rest_speed_m_s` and |omega_z| below `rest_spin_rad_s`: twice the settle limits, a
     superset of `at_rest`). Every chunk it does not stop after is one the check passes
-    without a failure, a frame or a rest."""
+    without a failure, a rendered frame or a rest."""
 
     box: tuple[float, float, float, float]
-    rest_speed_m_s: float = 0.0
-    rest_spin_rad_s: float = 0.0
+    rest_speed_m_s: float
+    rest_spin_rad_s: float
+    rest_after: np.ndarray  # bool, one per chunk of the call
 
 
 def classify_state(
@@ -305,7 +306,8 @@ class Simulator(ABC):
         `frame_wanted(t_s, driving)`, if given, is asked before a moving frame is rendered
         (`driving`: the pusher is still moving along the push line); a frame it declines is
         neither rendered nor handed over, as a tracker that skips a camera frame never looks
-        at it.
+        at it. It is a question without side effects: the protocol may ask it ahead, for the
+        due frames up to the next one rendered (`_PushRun._batch`).
         Frames hang on the existing checks, so the steps an engine is asked for (`_advance`
         calls) are the same with or without frames: watching never changes the physics. The
         rate is therefore `1 / frame_interval_s` on average, each frame up to one check
@@ -456,6 +458,7 @@ class _PushRun:
         self.last_yaw = before.pose.yaw_rad
         self.turned = 0.0
         self.box: tuple[float, float, float, float] | None = None  # `ChunkStop`'s, once asked
+        self._answers: dict[float, bool] = {}  # `frame_wanted`'s, by due time (`_wanted`)
 
     def _frame_due(self, t_s: float) -> bool:
         """A frame is due at `t_s`: if so, the next one is due a frame interval later."""
@@ -484,7 +487,7 @@ class _PushRun:
             self.steps += chunk
             t_s = self.steps * self.dt
             if self._frame_due(t_s) and self.on_still is not None:
-                self.on_still(t_s)
+                self._tell_still(t_s)
         return n
 
     def run(self, targets: np.ndarray, driving: bool = False) -> ObjectState:
@@ -498,35 +501,58 @@ class _PushRun:
         """`run` the first chunk of `targets`; returns the steps advanced and the state.
 
         A backend that batches chunks (`Simulator.batches_chunks`) runs the whole chunks up
-        to the first at which a frame is due in one call, stopping early where its
-        `ChunkStop` says (`near_rest`: near rest too, for the settle rule); the chunks it
-        passes get the bookkeeping their checks would do (`_passed`), the last one the full
-        check. The steps, and what the checks conclude, are those of one `run` after
-        another (tests/test_planar.py)."""
-        sim, chunk = self.sim, self.chunk
-        n = len(targets) // chunk
-        k = 1
-        while sim.batches_chunks and k < n and not self._due_at((self.steps + k * chunk) * self.dt):
-            k += 1
-        if k == 1:
+        to the first one whose check may do more than bookkeeping (`_batch`) in one call,
+        stopping early where its `ChunkStop` says (`near_rest`: near rest too, for the settle
+        rule); the chunks it passes get the bookkeeping their checks would do (`_passed`),
+        the last one the full check. The steps, and what the checks conclude, are those of
+        one `run` after another (tests/test_planar.py)."""
+        chunk = self.chunk
+        n = len(targets) // chunk if self.sim.batches_chunks else 1
+        k, declined = self._batch(n, driving)
+        if k <= 1:  # one chunk, or a part of one (the end of a path)
             return len(targets[:chunk]), self.run(targets[:chunk], driving)
-        rest = (2.0 * self.s.settle_speed_m_s, 2.0 * self.s.settle_spin_rad_s) if near_rest else ()
+        rest = np.full(k, near_rest)
+        rest[declined] = True
         if self.box is None:
             self.box = surely_in_view_box(self.radius, self.camera)
-        done = sim._advance_chunks(targets[: k * chunk], chunk, ChunkStop(self.box, *rest))
+        stop = ChunkStop(
+            self.box, 2.0 * self.s.settle_speed_m_s, 2.0 * self.s.settle_spin_rad_s, rest
+        )
+        done = self.sim._advance_chunks(targets[: k * chunk], chunk, stop)
         for touched, tilt, yaw in done[:-1]:
             self._passed(chunk, touched, tilt, yaw)
         touched, tilt, _ = done[-1]
         return len(done) * chunk, self._check(chunk, touched, tilt, driving)
 
+    def _batch(self, n: int, driving: bool) -> tuple[int, list[int]]:
+        """How many of the next `n` chunks go in one call: up to the first at which a frame
+        is due, the last of them; while the pusher drives, past those the tracker declines
+        (`frame_wanted`: a question without side effects, so it is asked ahead; the object
+        moves with the pusher, so the frames asked are those the checks would ask; settling,
+        it may stop before the next due frame and show nothing new). Also the chunks (0-based)
+        at which a due frame is declined: passed unless the object is near rest there (at
+        rest, the check tells the tracker so: `on_still`)."""
+        declined: list[int] = []
+        next_s, fi = self.next_frame_s, self.frame_interval_s
+        for k in range(1, n + 1):
+            t_s = (self.steps + k * self.chunk) * self.dt
+            if not (self.watch and t_s >= next_s - 1e-9):
+                continue
+            if k == n or not driving or self._wanted(t_s, driving):
+                return k, declined
+            declined.append(k - 1)
+            next_s = (math.floor(t_s / fi + 1e-9) + 1) * fi  # as `_frame_due` moves it
+        return n, declined
+
     def _passed(self, n: int, touched: bool, tilt: float, yaw: float) -> None:
         """A chunk the backend ran past (`advance`): the check's bookkeeping of a state that
-        is finite, flat, surely in view, not at rest and due no frame."""
+        is finite, flat, surely in view and not at rest, where a due frame is declined."""
         self.steps += n
         self.contact = self.contact or touched
         self.turned += wrap_angle(yaw - self.last_yaw)
         self.last_yaw = yaw
         self.max_tilt = max(self.max_tilt, tilt, 0.0)
+        self._frame_due(self.steps * self.dt)  # a declined frame: the next one's time
 
     def _due_at(self, t_s: float) -> bool:
         """`_frame_due`'s test, without its bookkeeping."""
@@ -549,8 +575,8 @@ class _PushRun:
         if self.status is None and self._frame_due(t_s):
             if at_rest(st, s):  # a still object shows nothing new: no frame
                 if self.on_still is not None:
-                    self.on_still(t_s)
-            elif self.frame_wanted is None or self.frame_wanted(t_s, driving):
+                    self._tell_still(t_s)
+            elif self._wanted(t_s, driving):
                 xy = sim._pusher_xy()
                 frame = Frame(
                     sim.render_tracking_depth(),
@@ -560,7 +586,23 @@ class _PushRun:
                 )
                 self.on_frame(frame)  # type: ignore[misc]
                 self.n_frames += 1
+                self._answers.clear()  # the tracker has seen more
         return st
+
+    def _wanted(self, t_s: float, driving: bool) -> bool:
+        """Whether the moving frame due at `t_s` is rendered: `frame_wanted`'s answer (every
+        frame without it), asked once for each due frame (`_batch` asks ahead) until a frame
+        or a rest tells the tracker more."""
+        if self.frame_wanted is None:
+            return True
+        answer = self._answers.get(t_s)
+        if answer is None:
+            answer = self._answers[t_s] = self.frame_wanted(t_s, driving)
+        return answer
+
+    def _tell_still(self, t_s: float) -> None:
+        self.on_still(t_s)  # type: ignore[misc]
+        self._answers.clear()
 
     def drive(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
         """1) The straight path at the commanded speed; the pusher is where the path is at

@@ -224,7 +224,8 @@ class PoseTracker:
         self, t_s: float, driving: bool, step_deg: float, gap_s: float, drive_gap_s: float = 0.0
     ) -> bool:
         """Whether the camera frame `t_s` into the push is worth tracking (skipped ones are
-        not even rendered in simulation: `Simulator.push(frame_wanted=...)`).
+        not even rendered in simulation: `Simulator.push(frame_wanted=...)`, which may ask
+        ahead: this only reads the frames tracked so far).
 
         A frame is needed when the constant-rate prediction from the last two frames has the
         object turned `step_deg` since the last one, or `gap_s` after it at the latest:
