@@ -408,6 +408,41 @@ def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(case, watch, e
         assert math.ceil(cmd.travel_m / (speed * 1e-3) - 1e-9) % 10 != 0
 
 
+class _StopsEarly(PlanarSimulator):
+    """planar running at most two chunks a call: a backend may stop after any chunk (the
+    protocol then checks it in full), here right after frames the tracker declined."""
+
+    def _advance_chunks(self, targets, chunk, stop):
+        return super()._advance_chunks(targets[: 2 * chunk], chunk, stop)
+
+
+def test_a_batch_cut_short_after_a_declined_frame_asks_the_frames_one_by_one_would():
+    """The frames a tracker is asked about do not depend on where a batch ends: past a
+    declined frame the next one is due a frame interval later (`_passed`), not at the chunk
+    where the batch happened to stop. Asked ahead, a frame may turn out still (the object at
+    rest there: `on_still`, its answer unused); every other one is a frame one chunk per
+    call asks about."""
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
+    cmd = contact_push((-0.045, 0.012), (1.0, 0.0), 0.03, 0.04, 0.005)
+
+    def push(sim):
+        sim.build(SceneSpec(FloorSpec(0.1, 1.0), obj))
+        asked, frames, still = [], [], []
+
+        def wanted(t_s: float, driving: bool) -> bool:
+            asked.append(t_s)
+            return round(t_s * 30.0) % 4 == 0
+
+        out = sim.push(cmd, lambda f: frames.append(f.t_s), 1 / 30, still.append, wanted)
+        return out, frames, still, sorted(set(asked))
+
+    early, one_by_one = push(_StopsEarly()), push(_OneChunkAtATime())
+    assert early[:3] == one_by_one[:3]
+    asked, asked_one_by_one, still = set(early[3]), set(one_by_one[3]), set(early[2])
+    assert asked_one_by_one <= asked and asked - asked_one_by_one <= still
+    assert len(asked_one_by_one) > 10
+
+
 def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one():
     """Past the tipping onset the object pitches, and a tall one tips over: the batch
     stops where the object leaves the floor flat (`ChunkStop`), and the outcome and state
