@@ -464,9 +464,13 @@ class _PushRun:
         """A frame is due at `t_s`: if so, the next one is due a frame interval later."""
         if not self._due_at(t_s):
             return False
-        fi = self.frame_interval_s
-        self.next_frame_s = (math.floor(t_s / fi + 1e-9) + 1) * fi
+        self.next_frame_s = self._next_due(t_s)
         return True
+
+    def _next_due(self, t_s: float) -> float:
+        """When the frame after one due at `t_s` is due: the next multiple of the interval."""
+        fi = self.frame_interval_s
+        return (math.floor(t_s / fi + 1e-9) + 1) * fi
 
     def skip_still(self, targets: np.ndarray) -> int:
         """Advance the leading steps of `targets` that cannot move the object, in whole
@@ -533,15 +537,15 @@ class _PushRun:
         at which a due frame is declined: passed unless the object is near rest there (at
         rest, the check tells the tracker so: `on_still`)."""
         declined: list[int] = []
-        next_s, fi = self.next_frame_s, self.frame_interval_s
+        next_s = self.next_frame_s
         for k in range(1, n + 1):
             t_s = (self.steps + k * self.chunk) * self.dt
-            if not (self.watch and t_s >= next_s - 1e-9):
+            if not self._due_at(t_s, next_s):
                 continue
             if k == n or not driving or self._wanted(t_s, driving):
                 return k, declined
             declined.append(k - 1)
-            next_s = (math.floor(t_s / fi + 1e-9) + 1) * fi  # as `_frame_due` moves it
+            next_s = self._next_due(t_s)
         return n, declined
 
     def _passed(self, n: int, touched: bool, tilt: float, yaw: float) -> None:
@@ -554,9 +558,11 @@ class _PushRun:
         self.max_tilt = max(self.max_tilt, tilt, 0.0)
         self._frame_due(self.steps * self.dt)  # a declined frame: the next one's time
 
-    def _due_at(self, t_s: float) -> bool:
-        """`_frame_due`'s test, without its bookkeeping."""
-        return self.watch and t_s >= self.next_frame_s - 1e-9
+    def _due_at(self, t_s: float, next_s: float | None = None) -> bool:
+        """`_frame_due`'s test, without its bookkeeping (`next_s`: the next frame's time, by
+        default the push's own)."""
+        next_s = self.next_frame_s if next_s is None else next_s
+        return self.watch and t_s >= next_s - 1e-9
 
     def _check(self, n: int, touched: bool, tilt: float, driving: bool) -> ObjectState:
         """After a chunk of `n` steps: failures, turn, tilt, a due frame."""
