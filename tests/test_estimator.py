@@ -133,6 +133,26 @@ def test_validity_requires_the_line_to_cut_the_region():
     np.testing.assert_array_equal(line_cuts_region(region, P, N), [True, False])
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_cut_test_is_the_planes_of_sides(seed):
+    """`line_cuts_region` (a compiled scan that stops at a line's first points on both
+    sides) decides as the (lines x points) planes of sides it replaced, on random lines and
+    on lines through region points of a grid (sides exactly zero)."""
+    rng = np.random.default_rng(seed)
+    region = grid_in(rect(0.05, 0.03)) if seed % 2 else rng.normal(size=(300, 2)) * 0.02
+    P = np.concatenate([rng.normal(size=(40, 2)) * 0.1, region[rng.integers(0, len(region), 40)]])
+    N = np.concatenate([rng.normal(size=(40, 2)), np.round(rng.normal(size=(40, 2)))])
+    N[np.all(N == 0, axis=1)] = (1.0, 0.0)
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    dx = region[None, :, 0] - P[:, 0, None]
+    dy = region[None, :, 1] - P[:, 1, None]
+    side = N[:, 0, None] * dy - N[:, 1, None] * dx
+    want = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
+    assert 5 < want.sum() < len(P) - 5  # both answers occur
+    np.testing.assert_array_equal(line_cuts_region(region, P, N), want)
+    assert line_cuts_region(region[:0], P, N).tolist() == [False] * len(P)
+
+
 def test_scoring_prefers_a_cut_across_the_long_axis_through_the_centroid():
     """Elongated region along x: the best push crosses the long axis through the centroid."""
     poly = rect(0.06, 0.02)

@@ -32,7 +32,7 @@ from comexp.method.rendering import (
     render_prism_window_depth,
 )
 from comexp.method.scene import CameraSpec, DepthImage, Pose2D
-from comexp.method.tracking import PoseTracker, _icp_kernel
+from comexp.method.tracking import PoseTracker, _icp_kernel, _median_kernel
 
 CAM = CameraSpec().model()
 OBJECTS = load_objects()
@@ -87,6 +87,45 @@ def test_icp_kernel_moves_and_counts_like_the_numpy_icp():
     assert abs(new.pose.yaw_rad - ref.pose.yaw_rad) < 1e-9
     short = tracker._icp_fast(view.contour_m, yaw0 + 0.15, t0, ref.iterations - 1, 1e-3, 1e-4)
     assert abs(short.pose.yaw_rad - ref.pose.yaw_rad) > 1e-6
+
+
+def test_an_icp_limit_cycle_ends_where_its_iterations_would():
+    """A run that revisits a state (to the bit) cycles from there: the kernel ends it at once
+    with the state and rms the iterations would reach at `max_iter`. Each run equals the
+    same iterations one call at a time (max_iter=1 from each state), which never skip;
+    among these frames some runs do cycle, with periods > 1."""
+    cycles: list[int] = []
+    for name in sorted(OBJECTS):
+        tracker, frames = _frames(name, 6, seed=sum(map(ord, name)))
+        args = (tracker.ref, tracker._ref_sq, tracker.ref_normals)
+        gate = 4.0 * tracker.pixel_m
+        for view, yaw0, t0 in frames:
+            q = np.ascontiguousarray(view.contour_m)
+            phi = -yaw0
+            c, s = math.cos(phi), math.sin(phi)
+            state = (phi, -(c * t0[0] - s * t0[1]), -(s * t0[0] + c * t0[1]))
+            for max_iter in (40, 23):
+                whole = _icp_kernel(q, *args, *state, gate, max_iter, 1e-7, 1e-8)
+                seen, st = [state], state
+                for it in range(1, max_iter + 1):
+                    one = _icp_kernel(q, *args, *st, gate, 1, 1e-7, 1e-8)
+                    st = one[1:4]
+                    if st in seen and it < max_iter and max_iter == 40:
+                        cycles.append(it - seen.index(st))
+                    seen.append(st)
+                    if one[5] == 1 and it < max_iter and whole[5] == it:
+                        break  # converged at iteration `it`
+                assert whole[:5] == (True, *st, one[4]), (name, max_iter)
+    assert cycles and max(cycles) > 1, cycles
+
+
+def test_the_icp_gate_s_median_is_numpy_s():
+    """`_median_kernel` (selection, no sort) gives np.median's value to the bit: odd and
+    even lengths, ties, one element."""
+    rng = np.random.default_rng(7)
+    for m in [1, 2, 3, 4, 5, 8, 63, 64, 111, 112, 200]:
+        for d in (rng.random(m), np.round(rng.random(m) * 4) / 4, np.full(m, 0.25)):
+            assert _median_kernel(d.copy(), np.empty(m)) == np.median(d), (m, d)
 
 
 def test_singular_normal_equations_fall_back_to_the_numpy_icp():
@@ -154,7 +193,7 @@ def test_the_ray_cast_window_is_the_projections_bounding_box():
         v0 = max(math.floor(uv[:, 1].min()) - 1, 0)
         v1 = min(math.ceil(uv[:, 1].max()) + 1, CAM.height_px - 1)
         want = (u0, u1, v0, v1) if u0 <= u1 and v0 <= v1 else None
-        assert _prism_window(CAM, world, height) == want
+        assert _prism_window(CAM, outline, height, pose) == want
 
 
 def test_a_tracking_frame_s_window_is_the_full_image_s_and_tracks_the_same():

@@ -63,8 +63,12 @@ def test_the_mask_is_the_largest_blob_of_the_whole_image(seed):
         depth[30:34, 5:9] = hz - 0.02
         depth[0, -1] = np.nan
         depth[-3:, 0:3] = hz - 0.02  # touching the border
+        depth[5, 5] = -np.inf  # not finite: not above the floor
     img = DepthImage(depth, CAM)
     np.testing.assert_array_equal(object_mask(img), _full_image_mask(img))
+    # an engine's float32 image: compared in its own precision, as the whole image's test
+    img32 = DepthImage(depth.astype(np.float32), CAM)
+    np.testing.assert_array_equal(object_mask(img32), _full_image_mask(img32))
 
 
 def test_mask_region_and_hull_match_the_footprint():

@@ -48,6 +48,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import shapely
+from numba import njit
 
 from comexp.method.geometry import ccw, centroid, simplify
 from comexp.method.scene import Pose2D, wrap_angle
@@ -179,13 +180,34 @@ def weighted_pca(
 
 def line_cuts_region(region: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
     """For each push line (P_i, N_i): does it pass through the region, i.e. leave region points
-    strictly on both sides? (M,) bool. Vectorised over contacts x region points."""
-    # cross2(N_i, r_j - P_i), written out on (M, n) planes: the same arithmetic without the
-    # (M, n, 2) temporaries, which dominated Algorithm 1's cost (docs/performance.md)
-    dx = region[None, :, 0] - P[:, 0, None]
-    dy = region[None, :, 1] - P[:, 1, None]
-    side = N[:, 0, None] * dy - N[:, 1, None] * dx  # (M, n)
-    return (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
+    strictly on both sides? (M,) bool. Compiled (`_line_cuts_kernel`): a line's scan stops
+    at its first points on both sides, where the (M, n) planes of sides cost ~0.1 ms a push."""
+    region = np.ascontiguousarray(region, dtype=np.float64).reshape(-1, 2)
+    P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 2)
+    N = np.ascontiguousarray(N, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros(len(P), dtype=np.bool_)
+    if len(region):
+        _line_cuts_kernel(region, P, N, out)
+    return out
+
+
+@njit(cache=True)
+def _line_cuts_kernel(region, P, N, out):
+    """`line_cuts_region` into `out`: the side of every region point, cross2(N_i, r_j - P_i),
+    in the arithmetic of the numpy expression it replaced (dx, dy, then N_x dy - N_y dx). A
+    point whose side is NaN is on neither side."""
+    for i in range(P.shape[0]):
+        px, py, nx, ny = P[i, 0], P[i, 1], N[i, 0], N[i, 1]
+        pos = neg = False
+        for j in range(region.shape[0]):
+            side = nx * (region[j, 1] - py) - ny * (region[j, 0] - px)
+            if side > 0.0:
+                pos = True
+            elif side < 0.0:
+                neg = True
+            if pos and neg:
+                break
+        out[i] = pos and neg
 
 
 def push_candidates(

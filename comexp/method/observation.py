@@ -84,22 +84,55 @@ def floor_depth_m(camera: CameraModel) -> float:
 def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarray:
     """Pixels clearly above the floor; only the largest connected blob is kept (the object)."""
     depth = img.depth_m
-    above = np.isfinite(depth) & (depth < floor_depth_m(img.camera) - min_height_m)
-    rows = np.flatnonzero(above.any(axis=1))
-    if len(rows) == 0:
-        return above
-    cols = np.flatnonzero(above.any(axis=0))
+    mask = np.zeros(depth.shape, dtype=bool)
+    below = depth.dtype.type(floor_depth_m(img.camera) - min_height_m)  # the image's precision
+    box = _above_floor_box(depth, below)
+    if box is None:
+        return mask
     # only the box around what is above the floor is labelled (a few % of a full image): its
     # blobs, their raster order and so the first of the largest are the full image's
-    v0, v1, u0, u1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    v0, v1, u0, u1 = box
+    above = np.empty((v1 - v0, u1 - u0), dtype=np.uint8)
+    _above_floor(depth, u0, v0, below, above)
     # Labels plus a bincount for the areas: cv2.connectedComponentsWithStats computes
     # bounding boxes and centroids we do not need and costs ~8x more (docs/performance.md).
-    n, labels = cv2.connectedComponents(above[v0:v1, u0:u1].astype(np.uint8), connectivity=8)
+    n, labels = cv2.connectedComponents(above, connectivity=8)
     areas = np.bincount(labels.ravel(), minlength=n)
     biggest = 1 + int(np.argmax(areas[1:]))
-    mask = np.zeros_like(above)
     mask[v0:v1, u0:u1] = labels == biggest
     return mask
+
+
+def _above_floor_box(depth: np.ndarray, below: float) -> tuple[int, int, int, int] | None:
+    """Rows v0:v1 and columns u0:u1 of the box around the pixels whose depth is finite and
+    less than `below` (`_above_floor`'s test), or None when there are none."""
+    v0, v1, u0, u1 = _above_floor_box_kernel(depth, below)
+    return None if v1 == 0 else (v0, v1, u0, u1)
+
+
+@njit(cache=True)
+def _above_floor_box_kernel(depth, below):
+    """`_above_floor_box` in one pass over the image (v1 = 0: no such pixel). A row is
+    first tested whole, without branches (vectorised: most rows are floor)."""
+    h, w = depth.shape
+    v0, v1, u0, u1 = h, 0, w, 0
+    for v in range(h):
+        row = depth[v]
+        hits = 0
+        for u in range(w):
+            d = row[u]
+            hits += (d < below) & (d > -np.inf)  # finite and below (NaN: neither)
+        if hits == 0:
+            continue
+        if v < v0:
+            v0 = v
+        v1 = v + 1
+        for u in range(w):
+            d = row[u]
+            if d < below and d > -np.inf:
+                u0 = min(u0, u)
+                u1 = max(u1, u + 1)
+    return v0, v1, u0, u1
 
 
 @njit(cache=True)

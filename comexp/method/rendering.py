@@ -16,13 +16,16 @@ from numba import njit
 from comexp.method.scene import CameraModel, DepthImage, Pose2D
 
 
-def _prism_window(camera: CameraModel, world_outline: np.ndarray, height_m: float):
-    """The pixel window (u0, u1, v0, v1) that can see the prism, or None: between the
-    outline's projections at the floor and at the top face, one pixel of margin."""
+def _prism_window(camera: CameraModel, outline: np.ndarray, height_m: float, pose: Pose2D):
+    """The pixel window (u0, u1, v0, v1) that can see the prism (its object-frame `outline`
+    at `pose`), or None: between the outline's projections at the floor and at the top
+    face, one pixel of margin."""
     x0, y0, z0 = camera.position_m
+    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)  # as `Pose2D.to_world`
     umin, umax, vmin, vmax = _projected_extremes(
-        np.ascontiguousarray(world_outline, dtype=float), float(x0), float(y0), camera.cx_px,
-        camera.cy_px, camera.fx_px, camera.fy_px, z0 - 0.0, z0 - float(height_m),
+        np.ascontiguousarray(outline, dtype=float), float(pose.x_m), float(pose.y_m), c, s,
+        float(x0), float(y0), camera.cx_px, camera.cy_px, camera.fx_px, camera.fy_px,
+        z0 - 0.0, z0 - float(height_m),
     )  # fmt: skip
     u0 = max(math.floor(umin) - 1, 0)
     u1 = min(math.ceil(umax) + 1, camera.width_px - 1)
@@ -34,15 +37,18 @@ def _prism_window(camera: CameraModel, world_outline: np.ndarray, height_m: floa
 
 
 @njit(cache=True)
-def _projected_extremes(world, x0, y0, cx, cy, fx, fy, depth_a, depth_b):
-    """The extremes of the outline's pixel coordinates at two depths: `CameraModel.
-    world_to_pixel`'s arithmetic, point by point (a few us of numpy calls a frame)."""
+def _projected_extremes(outline, px, py, c, s, x0, y0, cx, cy, fx, fy, depth_a, depth_b):
+    """The extremes of the posed outline's pixel coordinates at two depths: each point's
+    `Pose2D.to_world` then `CameraModel.world_to_pixel` arithmetic, in scalars (a few us of
+    numpy calls a frame)."""
     umin = vmin = np.inf
     umax = vmax = -np.inf
     for depth in (depth_a, depth_b):
-        for i in range(world.shape[0]):
-            u = cx + (world[i, 0] - x0) * fx / depth
-            v = cy - (world[i, 1] - y0) * fy / depth
+        for i in range(outline.shape[0]):
+            wx = px + c * outline[i, 0] - s * outline[i, 1]
+            wy = py + s * outline[i, 0] + c * outline[i, 1]
+            u = cx + (wx - x0) * fx / depth
+            v = cy - (wy - y0) * fy / depth
             umin, umax = min(umin, u), max(umax, u)
             vmin, vmax = min(vmin, v), max(vmax, v)
     return umin, umax, vmin, vmax
@@ -213,7 +219,7 @@ def render_prism_depth(
     outline = np.ascontiguousarray(outline_m, dtype=float)
     hz = float(camera.position_m[2])
     depth_img = np.full((camera.height_px, camera.width_px), hz)
-    win = _prism_window(camera, pose.to_world(outline), height_m)
+    win = _prism_window(camera, outline, height_m, pose)
     if win is not None:
         _ray_cast_window(camera, outline, float(height_m), pose, win, depth_img)
     return DepthImage(depth_img, camera)
@@ -232,7 +238,7 @@ def render_prism_window_depth(
     needs only the object, and the full image is ~25x more pixels to fill and threshold.
     The full image when no pixel can see it."""
     outline = np.ascontiguousarray(outline_m, dtype=float)
-    win = _prism_window(camera, pose.to_world(outline), height_m)
+    win = _prism_window(camera, outline, height_m, pose)
     if win is None:
         return render_prism_depth(camera, outline, height_m, pose)
     wu0, wu1, wv0, wv1 = win
@@ -277,7 +283,7 @@ def render_prism_depth_numpy(
     outline = np.asarray(outline_m, dtype=float)
     hz = camera.position_m[2]
     depth_img = np.full((camera.height_px, camera.width_px), hz)
-    window = _prism_window(camera, pose.to_world(outline), height_m)
+    window = _prism_window(camera, outline, height_m, pose)
     if window is None:
         return DepthImage(depth_img, camera)
     u0, u1, v0, v1 = window

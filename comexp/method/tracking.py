@@ -289,6 +289,11 @@ def _icp_kernel(q, ref, ref_sq, ref_normals, phi, sx, sy, gate, max_iter, tol_ra
     x = np.empty((m, 2))
     dist = np.empty(m)
     jidx = np.empty(m, dtype=np.int64)
+    work = np.empty(m)
+    # the state (phi, sx, sy) before iteration k + 1 and iteration k's rms, for cycles
+    seen = np.empty((max_iter + 1, 3))
+    seen_rms = np.empty(max_iter + 1)
+    seen[0, 0], seen[0, 1], seen[0, 2] = phi, sx, sy
     it = 0
     rms = np.inf
     for it in range(1, max_iter + 1):  # noqa: B007 - reported
@@ -305,9 +310,7 @@ def _icp_kernel(q, ref, ref_sq, ref_normals, phi, sx, sy, gate, max_iter, tol_ra
             jidx[i] = jb
             d0, d1 = x0 - ref[jb, 0], x1 - ref[jb, 1]
             dist[i] = math.sqrt(d0 * d0 + d1 * d1)
-        srt = np.sort(dist)
-        k = m // 2
-        med = srt[k] if m % 2 else 0.5 * (srt[k - 1] + srt[k])
+        med = _median_kernel(dist, work)
         lim = max(gate, 3.0 * med)
         a00 = a01 = a02 = a11 = a12 = a22 = 0.0
         b0 = b1 = b2 = 0.0
@@ -358,7 +361,67 @@ def _icp_kernel(q, ref, ref_sq, ref_normals, phi, sx, sy, gate, max_iter, tol_ra
         sx, sy = cd * sx - sd * sy + e1, sd * sx + cd * sy + e2
         if abs(e0) < tol_rad and math.hypot(e1, e2) < tol_m:
             break
+        seen[it, 0], seen[it, 1], seen[it, 2] = phi, sx, sy
+        seen_rms[it] = rms
+        j = _earlier_state(seen, it)
+        if j >= 0:  # a limit cycle, state j -> it: the iterations left repeat it exactly
+            p = it - j
+            k = j + (max_iter - j) % p  # the state after the last iteration
+            last = j + (max_iter - 1 - j) % p + 1  # the iteration the last one repeats
+            return True, seen[k, 0], seen[k, 1], seen[k, 2], seen_rms[last], max_iter
     return True, phi, sx, sy, rms, it
+
+
+@njit(cache=True)
+def _earlier_state(seen, k):
+    """The j < k whose state seen[j] is seen[k] to the bit (zeros' signs too), or -1. The
+    iteration is a function of the state alone, so from there on it cycles: none of the
+    cycle's iterations converged, so none of the later ones will."""
+    for j in range(k):
+        same = True
+        for c in range(3):
+            a, b = seen[j, c], seen[k, c]
+            if not (a == b and math.copysign(1.0, a) == math.copysign(1.0, b)):
+                same = False
+                break
+        if same:
+            return j
+    return -1
+
+
+@njit(cache=True)
+def _median_kernel(d, work):
+    """np.median of d (no NaNs, len >= 1) by selection in `work` (len(d)): the middle
+    value(s) of the sorted d without sorting it (Hoare's selection, middle pivot)."""
+    m = d.shape[0]
+    work[:] = d
+    k = m // 2
+    lo, hi = 0, m - 1
+    while lo < hi:  # work[k] becomes the k-th smallest; smaller ones before it
+        pivot = work[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while work[i] < pivot:
+                i += 1
+            while work[j] > pivot:
+                j -= 1
+            if i <= j:
+                work[i], work[j] = work[j], work[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    upper = work[k]
+    if m % 2:
+        return upper
+    lower = work[0]
+    for i in range(1, k):
+        lower = max(lower, work[i])
+    return 0.5 * (lower + upper)
 
 
 def _median(d: np.ndarray) -> float:
