@@ -645,6 +645,10 @@ class PlanarSimulator(Simulator):
         self._scene: SceneSpec | None = None
         self._q = np.array(_PARK_XY_M, dtype=float)
         self._camera = None
+        # `object_state`'s last answer, the model it is of and that model's state array
+        self._state_of: PlanarModel | None = None
+        self._state_key = b""
+        self._state: ObjectState | None = None
 
     def build(self, scene: SceneSpec) -> None:
         """A new model, or the last one reset when only the pose changed (an episode re-centres
@@ -667,9 +671,17 @@ class PlanarSimulator(Simulator):
 
     # --- state -----------------------------------------------------------------------------
     def object_state(self) -> ObjectState:
+        """The state of the model's state array, made once per distinct array: the protocol
+        and the camera ask again for the state between steps (the frame after a check, a
+        still object's every check)."""
         m = self._require()
+        key = m.ms.tobytes()
+        if self._state_of is m and self._state_key == key:
+            return self._state
         state = m.ms[: XI_W + 1].tolist()  # CoM x, y, yaw, twist
-        return _object_state(m.com_xy, state[:2], state[2], state[3:], _model_tilt(m))
+        st = _object_state(m.com_xy, state[:2], state[2], state[3:], _model_tilt(m))
+        self._state_of, self._state_key, self._state = m, key, st
+        return st
 
     def set_object_velocity(self, linear_m_s, angular_rad_s) -> None:
         m = self._require()

@@ -229,6 +229,34 @@ def test_a_rebuilt_scene_is_a_new_one_to_the_bit():
     assert used.trace == fresh.trace and len(used.trace) > 100
 
 
+def test_the_object_state_is_the_model_s_at_every_read():
+    """`object_state` is made once per state of the model (the protocol asks again between
+    steps), and is the model's after whatever changed it: a velocity set, steps, a rebuilt
+    scene (a reset model: the same object), the model's arrays written directly."""
+    from comexp.backends.planar_sim import XI_W, _model_tilt, _object_state
+
+    def made(sim: PlanarSimulator):
+        m = sim._model
+        st = m.ms[: XI_W + 1].tolist()
+        return _object_state(m.com_xy, st[:2], st[2], st[3:], _model_tilt(m))
+
+    obj = box_object(0.08, 0.05, 0.015, com_m=(0.01, -0.005), mu_pusher=0.5)
+    scene = SceneSpec(FloorSpec(0.3, 0.3), obj, initial_pose=Pose2D(0.01, 0.0, 0.2))
+    sim = PlanarSimulator()
+    sim.build(scene)
+    first = sim.object_state()
+    assert sim.object_state() is first and first == made(sim)
+    sim.set_object_velocity((0.05, 0.0, 0.0), (0.0, 0.0, 1.0))
+    assert sim.object_state() == made(sim) != first
+    assert sim.object_state().angular_velocity_rad_s[2] == 1.0
+    sim._advance(np.repeat(np.array([[0.5, 0.5]]), 10, axis=0))  # steps, pusher far away
+    assert sim.object_state() == made(sim) and sim.object_state().pose != first.pose
+    sim.build(replace(scene, initial_pose=Pose2D(0.01, 0.0, 0.2)))  # reset to the start
+    assert sim.object_state() == first
+    sim._model.ms[1] += 0.01  # the CoM's y, written directly
+    assert sim.object_state() == made(sim) != first
+
+
 def test_rendered_pose_matches_the_state():
     """The camera is the exact ray-cast of the prism at the model's pose."""
     from comexp.method.observation import observe
