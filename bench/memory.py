@@ -199,8 +199,10 @@ def run_job(
         try:
             sweep = db.start_sweep(command_line="bench/memory.py")
             options = job_backend_options(backend, floor, speed)
-            warm_kernel_cache(backend, specs[0], options)  # as `comexp` does, before Ray
-            ensure_ray(None, workers)
+            # as `comexp` does: the kernels in a child while Ray starts
+            warm_kernel_cache(
+                backend, specs[0], options, meanwhile=lambda: ensure_ray(None, workers)
+            )
             pool = EpisodePool(backend, workers, backend_options=options)
             with pool:
                 worker_pids = [

@@ -153,8 +153,8 @@ def run_once(
 
 def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
     """What `comexp` does before the first episode: Hydra + validation + grid, the resume
-    query against an empty database, the kernels compiled (or loaded) in a child process,
-    and Ray's start."""
+    query against an empty database, the kernels compiled (or loaded) in a child process
+    while Ray starts."""
     from comexp.workers.kernel_cache import warm_kernel_cache
     from comexp.workers.session import ensure_ray
 
@@ -168,17 +168,21 @@ def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
         t_resume = time.perf_counter() - t0
     finally:
         db.close()
-    t0 = time.perf_counter()
-    warm_kernel_cache(backend, specs[0], job_backend_options(backend))
-    t_kernels = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    ensure_ray(None, cpus)
-    t_ray = time.perf_counter() - t0
+    t_ray: list[float] = []
+
+    def start_ray() -> None:
+        t = time.perf_counter()
+        ensure_ray(None, cpus)
+        t_ray.append(time.perf_counter() - t)
+
+    t0 = time.perf_counter()  # as `comexp` does: the kernels in a child while Ray starts
+    warm_kernel_cache(backend, specs[0], job_backend_options(backend), meanwhile=start_ray)
+    t_both = time.perf_counter() - t0
     return {
         "hydra_grid_s": t_grid,
         "resume_query_s": t_resume,
-        "kernels_s": t_kernels,
-        "ray_start_s": t_ray,
+        "kernels_and_ray_s": t_both,
+        "ray_start_s": t_ray[0],
     }
 
 
@@ -190,8 +194,8 @@ def report(backend: str, n: int, setup: dict[str, float], runs: list[Run], round
     print(f"== scaling: {backend} (source {source_digest(backend)}), {n} episodes (iso/40 slice)")
     print(
         f"one-off: Hydra+validation+grid (1,600) {setup['hydra_grid_s']:.2f} s, "
-        f"resume query {setup['resume_query_s']:.2f} s, kernels {setup['kernels_s']:.2f} s, "
-        f"Ray start {setup['ray_start_s']:.2f} s"
+        f"resume query {setup['resume_query_s']:.2f} s, kernels beside Ray's start "
+        f"{setup['kernels_and_ray_s']:.2f} s (Ray's start {setup['ray_start_s']:.2f} s)"
     )
     hdr = (
         f"{'workers':>7}{'load':>6}{'pool start':>11}{'elapsed':>9}{'ep/s':>7}{'speed-up':>9}"

@@ -387,7 +387,9 @@ def test_scaling_reports_runs(capfd):
             {"a": 0.5}, 1.0,
         )  # fmt: skip
 
-    setup = {"hydra_grid_s": 0.1, "resume_query_s": 0.1, "kernels_s": 1.0, "ray_start_s": 2.0}
+    setup = {
+        "hydra_grid_s": 0.1, "resume_query_s": 0.1, "kernels_and_ray_s": 2.1, "ray_start_s": 2.0
+    }  # fmt: skip
     capfd.readouterr()
     scaling.report("pybullet", 8, setup, [run(1, 4.0), run(2, 2.5)])
     out = capfd.readouterr().out

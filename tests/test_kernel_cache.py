@@ -33,11 +33,17 @@ def fresh(monkeypatch):
 def test_the_warm_up_runs_once_per_backend_and_options_and_not_for_the_seams(fresh):
     children: list[tuple[list[str], bytes]] = []
 
-    def run(cmd, input, **kw):  # noqa: A002 - subprocess.run's own name
-        children.append((cmd, input))
-        return subprocess.CompletedProcess(cmd, 0, b"", b"")
+    class Child:  # a child that ran the episode it was sent
+        returncode = 0
 
-    fresh.setattr(kernel_cache.subprocess, "run", run)
+        def __init__(self, cmd, **kw):
+            with open(cmd[-1], "rb") as f:
+                children.append((cmd[:-1], f.read()))
+
+        def communicate(self, timeout=None):
+            return b"", b""
+
+    fresh.setattr(kernel_cache.subprocess, "Popen", Child)
     spec = planar_spec()
     assert kernel_cache.warm_kernel_cache("planar", spec)
     assert not kernel_cache.warm_kernel_cache("planar", spec)  # this process has them
@@ -52,6 +58,45 @@ def test_the_warm_up_runs_once_per_backend_and_options_and_not_for_the_seams(fre
     fresh.setenv("NUMBA_DISABLE_JIT", "1")  # nothing to compile; the episode would crawl
     assert not kernel_cache.warm_kernel_cache("planar", spec)
     assert len(children) == 3
+
+
+def test_ray_starts_while_the_child_loads_the_kernels(fresh):
+    """`meanwhile` (Ray's start in `comexp`) runs while the child is at work, and also when
+    there is no child; an error in it ends the child and reaches the caller."""
+    started: list[float] = []
+    spec = planar_spec()
+
+    def meanwhile() -> None:
+        child = [p for p in _children() if "comexp.workers.kernel_cache" in p]
+        started.append(len(child))
+
+    assert kernel_cache.warm_kernel_cache("planar", spec, meanwhile=meanwhile)
+    assert started == [1]  # the child was running
+    assert not kernel_cache.warm_kernel_cache("planar", spec, meanwhile=meanwhile)
+    assert started == [1, 0]  # warmed already: no child, Ray still started
+
+    def fails() -> None:
+        raise RuntimeError("no Ray")
+
+    fresh.setattr(kernel_cache, "_warmed", set())
+    with pytest.raises(RuntimeError, match="no Ray"):
+        kernel_cache.warm_kernel_cache("planar", spec, meanwhile=fails)
+    assert not [p for p in _children() if "comexp.workers.kernel_cache" in p]
+
+
+def _children() -> list[str]:
+    """The command lines of this process's children."""
+    out = []
+    for pid in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            if ppid == os.getpid():
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    out.append(f.read().replace(b"\0", b" ").decode())
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
 
 
 def test_a_failing_warm_up_is_a_warning_naming_the_child_s_error(fresh, caplog):

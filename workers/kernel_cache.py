@@ -8,11 +8,13 @@ episode of the job in a child process fills the cache; the child exits, its memo
 the system, and the workers load the compiled kernels from disk. With a warm cache the child
 only loads them (1.0 - 1.3 s per backend, once per driver process).
 
-It runs before Ray starts, so that the compiler's peak does not add to Ray's processes. Only
-for workers on this machine (callers skip it for a cluster, whose nodes have caches of their
-own), and only for the real episode runner and simulators: the test seams (`COMEXP_RUNNER`,
-`COMEXP_SIMULATOR_FACTORY`) run fakes that compile nothing. A child that fails or overruns is
-a warning, never an error: the workers then compile for themselves, as they always could.
+It runs beside Ray's start (`meanwhile`: the head's processes, ~2 s; the workers start after
+it), which hides the ~1 s it takes with a warm cache; the compiler's peak on a cold one never
+meets the workers' memory. Only for workers on this machine (callers skip it for a cluster,
+whose nodes have caches of their own), and only for the real episode runner and simulators:
+the test seams (`COMEXP_RUNNER`, `COMEXP_SIMULATOR_FACTORY`) run fakes that compile nothing. A
+child that fails or overruns is a warning, never an error: the workers then compile for
+themselves, as they always could.
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ import os
 import pickle
 import subprocess
 import sys
+import tempfile
 import time
+from collections.abc import Callable
 from typing import Any
 
 from comexp.experiment.task import EpisodeSpec
@@ -40,49 +44,75 @@ def warm_kernel_cache(
     backend_options: dict[str, Any] | None = None,
     *,
     timeout_s: float = WARM_UP_TIMEOUT_S,
+    meanwhile: Callable[[], None] | None = None,
 ) -> bool:
     """Run `spec` on `backend` in a child process (this process's environment, which local
     workers inherit) so that every kernel a job of it needs is in Numba's cache before the
-    workers start; once per backend and options per process. Returns whether the child ran
-    the episode (False when skipped or failed: the workers compile what they miss)."""
+    workers start; once per backend and options per process. `meanwhile` runs while the
+    child works (always, also when there is no child; its error ends the child). Returns
+    whether the child ran the episode (False when skipped or failed: the workers compile
+    what they miss)."""
     from .actor import RUNNER_ENV, SIMULATOR_FACTORY_ENV
 
     key = repr((backend, sorted((backend_options or {}).items())))
     seams = os.environ.get(RUNNER_ENV) or os.environ.get(SIMULATOR_FACTORY_ENV)
     if key in _warmed or seams or _numba_disabled():
+        if meanwhile is not None:
+            meanwhile()
         return False
     _warmed.add(key)  # a failure is not retried: the workers compile for themselves
     payload = pickle.dumps((backend, dict(backend_options or {}), spec))
     log.info("%s: loading the compiled kernels (compiling them if the cache is cold)", backend)
     t0 = time.perf_counter()
-    try:
-        done = subprocess.run(
-            [sys.executable, "-m", __name__],
-            input=payload,
-            capture_output=True,
-            timeout=timeout_s,
-            check=False,
-        )
-    except subprocess.TimeoutExpired:
-        log.warning(
-            "%s: compiling the kernels took over %.0f s; the workers compile what is missing",
-            backend,
-            timeout_s,
-        )
-        return False
-    except OSError as e:
-        log.warning("%s: cannot start the kernel warm-up (%s)", backend, e)
-        return False
-    if done.returncode != 0:
-        tail = done.stderr.decode(errors="replace").strip().splitlines()[-1:] or ["?"]
+    with tempfile.TemporaryDirectory(prefix="comexp-warm-up-") as tmp:
+        job = os.path.join(tmp, "episode.pickle")  # the child reads it, then Ray starts here
+        with open(job, "wb") as f:
+            f.write(payload)
+        try:
+            child = subprocess.Popen(
+                [sys.executable, "-m", __name__, job],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+            )
+        except OSError as e:
+            log.warning("%s: cannot start the kernel warm-up (%s)", backend, e)
+            if meanwhile is not None:
+                meanwhile()
+            return False
+        try:
+            if meanwhile is not None:
+                meanwhile()
+            left_s = max(timeout_s - (time.perf_counter() - t0), 0.0)
+            _, err = child.communicate(timeout=left_s)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.communicate()
+            log.warning(
+                "%s: compiling the kernels took over %.0f s; the workers compile what is missing",
+                backend,
+                timeout_s,
+            )
+            return False
+        except BaseException:
+            child.kill()
+            child.communicate()
+            raise
+    if child.returncode != 0:
+        tail = err.decode(errors="replace").strip().splitlines()[-1:] or ["?"]
         log.warning(
             "%s: the kernel warm-up failed (exit %d: %s); the workers compile for themselves",
             backend,
-            done.returncode,
+            child.returncode,
             tail[0][:300],
         )
         return False
-    log.info("%s: kernels ready in %.1f s", backend, time.perf_counter() - t0)
+    log.info(
+        "%s: kernels ready in %.1f s%s",
+        backend,
+        time.perf_counter() - t0,
+        " (Ray started meanwhile)" if meanwhile is not None else "",
+    )
     return True
 
 
@@ -104,7 +134,8 @@ def _run_one_episode(backend: str, options: dict[str, Any], spec: EpisodeSpec) -
 
 
 def main() -> int:
-    backend, options, spec = pickle.loads(sys.stdin.buffer.read())  # noqa: S301 - our parent's
+    with open(sys.argv[1], "rb") as f:
+        backend, options, spec = pickle.load(f)  # noqa: S301 - our parent's
     _run_one_episode(backend, options, spec)
     return 0
 

@@ -329,18 +329,23 @@ def _run_todo(
     cfg: DictConfig, exp: ExperimentConfig, db: Any, todo: list[EpisodeSpec], label: str
 ) -> dict[str, int]:
     """Run the job's episodes not stored yet on a pool of `exp.workers` and store them under
-    a new sweep; the kernels first (a local job's workers then load them), then Ray."""
+    a new sweep; the kernels (a local job's workers then load them) beside Ray's start."""
     from comexp.workers.driver import Progress, run_and_store
     from comexp.workers.kernel_cache import warm_kernel_cache
     from comexp.workers.pool import close_job_pool, job_pool
     from comexp.workers.session import ensure_ray
 
     options = simulator_options(exp)
-    if exp.ray.address is None:  # local workers load the kernels this compiles
-        warm_kernel_cache(exp.backend.name, todo[0], options)
+
+    def start_ray() -> None:
+        ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
+
     # Ray first: a cluster that cannot be joined leaves no sweep row behind
     # (`probe_resources` has already rejected an address where nothing listens).
-    ensure_ray(exp.ray.address, exp.workers, log_to_driver=exp.ray.log_to_driver)
+    if exp.ray.address is None:  # local workers load the kernels this compiles
+        warm_kernel_cache(exp.backend.name, todo[0], options, meanwhile=start_ray)
+    else:
+        start_ray()
     hc = HydraConfig.get()
     job_cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     sweep_id = db.start_sweep(
