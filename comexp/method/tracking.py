@@ -276,13 +276,15 @@ def _icp_kernel(q, ref, ref_sq, ref_normals, phi, sx, sy, gate, max_iter, tol_ra
 
     Per iteration: nearest reference point of every x (argmin of |r|^2 - 2 x.r, the
     distance from the differences), the gate max(gate, 3 median), the point-to-line normal
-    equations of the kept points, solved by Cholesky, and the update. Returns (ok, phi, sx,
-    sy, truncated rms in metres, iterations); ok is False when the normal equations are
-    not positive definite (then nothing is to be trusted and `_icp` runs instead).
+    equations of the kept points, solved by Cholesky, and the update. A state revisited to
+    the bit is a limit cycle: the run ends with the state and rms its iterations would have
+    at `max_iter` (`_earlier_state`). Returns (ok, phi, sx, sy, truncated rms in metres,
+    iterations); ok is False when the normal equations are not positive definite (then
+    nothing is to be trusted and `_icp` runs instead).
 
-    Long on purpose: one compiled loop in scalars, with no calls and no temporary arrays
-    inside the iteration; split into helpers it would pay call and array overhead per point
-    and iteration, the very cost this kernel removes (docs/performance.md).
+    Long on purpose: one compiled loop in scalars, with no temporary arrays and no calls per
+    point inside the iteration; split into helpers it would pay call and array overhead per
+    point and iteration, the very cost this kernel removes (docs/performance.md).
     """
     m = q.shape[0]
     nr = ref.shape[0]
