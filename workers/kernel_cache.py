@@ -65,7 +65,7 @@ def warm_kernel_cache(
     log.info("%s: loading the compiled kernels (compiling them if the cache is cold)", backend)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="comexp-warm-up-") as tmp:
-        job = os.path.join(tmp, "episode.pickle")  # the child reads it, then Ray starts here
+        job = os.path.join(tmp, "episode.pickle")  # not stdin: the pipes carry its output only
         with open(job, "wb") as f:
             f.write(payload)
         try:
