@@ -151,6 +151,9 @@ def test_the_compiled_cut_test_is_the_planes_of_sides(seed):
     assert 5 < want.sum() < len(P) - 5  # both answers occur
     np.testing.assert_array_equal(line_cuts_region(region, P, N), want)
     assert line_cuts_region(region[:0], P, N).tolist() == [False] * len(P)
+    # a NaN point is on neither side: it neither makes nor spoils a cut
+    with_nan = np.concatenate([region, [[np.nan, 0.0]]])
+    np.testing.assert_array_equal(line_cuts_region(with_nan, P, N), want)
 
 
 def test_scoring_prefers_a_cut_across_the_long_axis_through_the_centroid():

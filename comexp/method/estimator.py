@@ -180,8 +180,9 @@ def weighted_pca(
 
 def line_cuts_region(region: np.ndarray, P: np.ndarray, N: np.ndarray) -> np.ndarray:
     """For each push line (P_i, N_i): does it pass through the region, i.e. leave region points
-    strictly on both sides? (M,) bool. Compiled (`_line_cuts_kernel`): a line's scan stops
-    at its first points on both sides, where the (M, n) planes of sides cost ~0.1 ms a push."""
+    strictly on both sides? (M,) bool. A point whose side is NaN is on neither side.
+    Compiled (`_line_cuts_kernel`): a line's scan stops at its first points on both sides,
+    where the (M, n) planes of sides cost ~0.1 ms a push."""
     region = np.ascontiguousarray(region, dtype=np.float64).reshape(-1, 2)
     P = np.ascontiguousarray(P, dtype=np.float64).reshape(-1, 2)
     N = np.ascontiguousarray(N, dtype=np.float64).reshape(-1, 2)

@@ -86,12 +86,11 @@ def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarr
     depth = img.depth_m
     mask = np.zeros(depth.shape, dtype=bool)
     below = depth.dtype.type(floor_depth_m(img.camera) - min_height_m)  # the image's precision
-    box = _above_floor_box(depth, below)
-    if box is None:
+    v0, v1, u0, u1 = _above_floor_box(depth, below)
+    if v1 == 0:  # nothing above the floor
         return mask
     # only the box around what is above the floor is labelled (a few % of a full image): its
     # blobs, their raster order and so the first of the largest are the full image's
-    v0, v1, u0, u1 = box
     above = np.empty((v1 - v0, u1 - u0), dtype=np.uint8)
     _above_floor(depth, u0, v0, below, above)
     # Labels plus a bincount for the areas: cv2.connectedComponentsWithStats computes
@@ -103,17 +102,11 @@ def object_mask(img: DepthImage, min_height_m: float = MIN_HEIGHT_M) -> np.ndarr
     return mask
 
 
-def _above_floor_box(depth: np.ndarray, below: float) -> tuple[int, int, int, int] | None:
-    """Rows v0:v1 and columns u0:u1 of the box around the pixels whose depth is finite and
-    less than `below` (`_above_floor`'s test), or None when there are none."""
-    v0, v1, u0, u1 = _above_floor_box_kernel(depth, below)
-    return None if v1 == 0 else (v0, v1, u0, u1)
-
-
 @njit(cache=True)
-def _above_floor_box_kernel(depth, below):
-    """`_above_floor_box` in one pass over the image (v1 = 0: no such pixel). A row is
-    first tested whole, without branches (vectorised: most rows are floor)."""
+def _above_floor_box(depth, below):
+    """Rows v0:v1 and columns u0:u1 of the box around the pixels whose depth is finite and
+    less than `below` (`_above_floor`'s test); v1 = 0 when there are none. One pass over the
+    image, each row first tested whole without branches (vectorised: most rows are floor)."""
     h, w = depth.shape
     v0, v1, u0, u1 = h, 0, w, 0
     for v in range(h):
