@@ -27,6 +27,7 @@ Physics choices (measured and justified in docs/physics_mujoco.md):
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections import OrderedDict
@@ -53,6 +54,7 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
     PUSHER_SENSOR,
     PUSHER_SENSOR_MJCF,
     cos_tilt,
+    push_chunks,
     push_steps,
     pusher_touching,
 )
@@ -63,7 +65,7 @@ from comexp.backends.physics_settings import (  # noqa: E402
     STILL_JUMPS,
     MujocoContactSettings,
 )
-from comexp.experiment.interface import PushStatus, Simulator  # noqa: E402
+from comexp.experiment.interface import ChunkStop, PushStatus, Simulator  # noqa: E402
 from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES  # noqa: E402
 from comexp.experiment.view import crop_camera, object_window_px  # noqa: E402
 from comexp.method.scene import (  # noqa: E402
@@ -75,11 +77,13 @@ from comexp.method.scene import (  # noqa: E402
     Pose2D,
     SceneSpec,
     SimSettings,
+    tilt_deg,
 )
 
 _PARK_XY_M = (3.0, 3.0)  # far outside the floor and the camera frustum
 _NO_RECORD = np.zeros((0, 5))  # push_steps: no friction inputs recorded
-_push_steps_call = DirectCall(push_steps)  # every chunk of the protocol's steps
+_push_steps_call = DirectCall(push_steps)  # a chunk of the protocol's steps (`_advance`)
+_push_chunks_call = DirectCall(push_chunks)  # chunks of them (`_advance_chunks`)
 _UNSTABLE_WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQACC,
     mujoco.mjtWarning.mjWARN_BADQVEL,
@@ -219,22 +223,31 @@ def _object_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[list
     return assets, obj_geoms
 
 
-def _support_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[list[str], int]:
+def _support_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[tuple[str, ...], int]:
     """The object's floor supports as invisible sphere geoms (`_support_points`: the core,
     then the rim) and how many of them are the core's."""
+    return _support_geoms_of(obj.outline_m, obj.com_m, contact)
+
+
+@functools.lru_cache(maxsize=16)
+def _support_geoms_of(
+    outline: tuple[tuple[float, float], ...],
+    com: tuple[float, float],
+    contact: MujocoContactSettings,
+) -> tuple[tuple[str, ...], int]:
+    """`_support_geoms` of what it depends on: an object's outline and CoM, which the 8
+    conditions of a worker's batch share (docs/performance.md), are laid out once."""
     core, rim = (
-        _support_points(obj.outline_m, obj.com_m, contact)
-        if contact.support_spacing_m > 0
-        else ([], [])
+        _support_points(outline, com, contact) if contact.support_spacing_m > 0 else ([], [])
     )
     r_sup = contact.support_radius_m
     zc = r_sup + contact.floor_margin_m  # hovers `floor_margin_m` up: object frame at z = 0
     supports = [(x, y, zc) for x, y in core] + [(x, y, r_sup + contact.rim_lift_m) for x, y in rim]
-    geoms = [
+    geoms = tuple(
         f'<geom name="sup{j}" type="sphere" size="{r_sup!r}" pos="{_fmt(x, y, z)}" '
         f'group="3" rgba="0 0 0 0"/>'
         for j, (x, y, z) in enumerate(supports)
-    ]
+    )
     return geoms, len(core)
 
 
@@ -259,12 +272,15 @@ def _contact_pairs(
         # rim supports are frictionless (condim 1): they only stop a tilting object from
         # sinking, and friction there would undo the core's symmetry whenever they touch
         condim = 3 if j < n_core or not contact.rim_frictionless else 1
+        friction = f'friction="{_fmt(floor.mu_y, floor.mu_x, 0.0, 0.0, 0.0)}" '
         if floor_friction == "model":
-            condim = 1  # normal support only: the footprint model supplies the friction
+            # normal support only: the footprint model supplies the friction, and the floor's
+            # coefficients stay out of the MJCF (a condim 1 contact does not read them), so
+            # scenes that differ in them share a compiled model (`_compiled_model`)
+            condim, friction = 1, ""
         margin = f'margin="{contact.floor_margin_m!r}" ' if j < n_core else ""
         pairs.append(
-            f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}'
-            f'friction="{_fmt(floor.mu_y, floor.mu_x, 0.0, 0.0, 0.0)}" {sref}/>'
+            f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}{friction}{sref}/>'
         )
     psref = sref
     if contact.pusher_solref is not None:
@@ -455,6 +471,42 @@ class _Renderer:
     cam_id: int = field(default=0)
 
 
+KEPT_MODELS = 2  # compiled scene models a simulator keeps (`_compiled_model`)
+
+
+@dataclass
+class _CompiledScene:
+    """A scene's compiled model and data, the addresses the steps use, and its object's
+    settled state (`MujocoSimulator._settle_at_origin`, made at its first build)."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    obj_qadr: int
+    obj_vadr: int
+    px_qadr: int
+    px_vadr: int
+    obj_body: int
+    sensor_adr: int
+    # MjData's buffers as numpy views (fixed for its life): the compiled step loop reads and
+    # writes them in place (backends/mujoco_steps.py); the warning counters are read at
+    # every check
+    views: tuple[np.ndarray, ...]
+    warning_numbers: np.ndarray
+    settled: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    @classmethod
+    def of(cls, xml: str) -> _CompiledScene:
+        m = mujoco.MjModel.from_xml_string(xml)
+        d = mujoco.MjData(m)
+        return cls(
+            m, d,
+            int(m.jnt_qposadr[m.joint("object").id]), int(m.jnt_dofadr[m.joint("object").id]),
+            int(m.jnt_qposadr[m.joint("pusher_x").id]), int(m.jnt_dofadr[m.joint("pusher_x").id]),
+            m.body("object").id, int(m.sensor_adr[m.sensor(PUSHER_SENSOR).id]),
+            (d.qpos, d.qvel, d.xipos, d.xfrc_applied, d.sensordata), d.warning.number,
+        )  # fmt: skip
+
+
 class MujocoSimulator(Simulator):
     name = "mujoco"
     still_jumps = STILL_JUMPS  # still steps jumped, not stepped
@@ -473,11 +525,14 @@ class MujocoSimulator(Simulator):
             raise ValueError(f"renderer must be one of {RENDERER_CHOICES}")
         self.floor_friction = floor_friction
         self.renderer = renderer
+        # the compiled steps run several of the protocol's chunks in one call (`push_chunks`)
+        self.batches_chunks = floor_friction == "model"
         self._fric: FootprintFriction | None = None
         self._pushed = False
         self.contact = contact or DEFAULT_CONTACT
         self._xml: str | None = None  # the MJCF the model was compiled from
         self._xml_key: tuple | None = None  # what `_scene_xml` was written of
+        self._models: OrderedDict[str, _CompiledScene] = OrderedDict()  # by MJCF
         self._scene_xml = ""
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
@@ -495,24 +550,10 @@ class MujocoSimulator(Simulator):
         if key != self._xml_key:
             self._xml_key = key
             self._scene_xml = scene_mjcf(scene, self.settings, self.contact, self.floor_friction)
-            self._settled = None  # settled again: the settle's length is not in the MJCF
         xml = self._scene_xml
-        if xml != self._xml:  # compiling is deterministic, so reuse == recompile bitwise
-            self.model = mujoco.MjModel.from_xml_string(xml)
-            self.data = mujoco.MjData(self.model)
+        if xml != self._xml:
+            self._use(self._compiled_model(xml))
             self._xml = xml
-            m = self.model
-            self._obj_qadr = int(m.jnt_qposadr[m.joint("object").id])
-            self._obj_vadr = int(m.jnt_dofadr[m.joint("object").id])
-            self._px_qadr = int(m.jnt_qposadr[m.joint("pusher_x").id])
-            self._px_vadr = int(m.jnt_dofadr[m.joint("pusher_x").id])
-            self._obj_body = m.body("object").id
-            self._sensor_adr = int(m.sensor_adr[m.sensor(PUSHER_SENSOR).id])
-            d = self.data
-            # MjData's buffers as numpy views (fixed for its life): the compiled step loop
-            # reads and writes them in place (backends/mujoco_steps.py)
-            self._views = (d.qpos, d.qvel, d.xipos, d.xfrc_applied, d.sensordata)
-            self._warning_numbers = d.warning.number  # a view too: read at every check
         fl = scene.floor
         self._fric = (
             FootprintFriction(scene.obj, fl.mu_x, fl.mu_y, scene.pusher)
@@ -521,12 +562,34 @@ class MujocoSimulator(Simulator):
         )
         self._com_local = np.array([scene.obj.com_m[0], scene.obj.com_m[1], scene.obj.height_m / 2])
         self._pushed = False
-        if self._settled is None:  # this model's object settled at the origin, yaw 0
-            self._settled = self._settle_at_origin()
+        compiled = self._models[xml]
+        if compiled.settled is None:  # this model's object settled at the origin, yaw 0
+            compiled.settled = self._settle_at_origin()
+        self._settled = compiled.settled
         self._place_settled(scene.initial_pose)
         self._scene = scene
         self._warnings0 = self._warning_count()
         self._render_key = _geometry_key(scene, self.contact)
+
+    def _compiled_model(self, xml: str) -> _CompiledScene:
+        """The model of `xml`, compiled or (one of the last `KEPT_MODELS`) kept: compiling is
+        deterministic, so reuse == recompile bitwise, and a build resets its data
+        (`_place_settled`). An episode's conditions alternate between models that differ in
+        the object's Izz and the pusher's friction only (the floor's friction is not in the
+        MJCF under `floor_friction=model`), so a worker's batch of them compiles and settles
+        each once."""
+        compiled = self._models.pop(xml, None) or _CompiledScene.of(xml)
+        self._models[xml] = compiled  # the most recent last
+        while len(self._models) > KEPT_MODELS:
+            self._models.popitem(last=False)
+        return compiled
+
+    def _use(self, c: _CompiledScene) -> None:
+        self.model, self.data = c.model, c.data
+        self._obj_qadr, self._obj_vadr = c.obj_qadr, c.obj_vadr
+        self._px_qadr, self._px_vadr = c.px_qadr, c.px_vadr
+        self._obj_body, self._sensor_adr = c.obj_body, c.sensor_adr
+        self._views, self._warning_numbers = c.views, c.warning_numbers
 
     def _settle_at_origin(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The object "resting on the floor", contacts at equilibrium: placed flat at the
@@ -677,6 +740,57 @@ class MujocoSimulator(Simulator):
         )
         return touched, _tilt_deg_of_cos(min_cos)
 
+    def _advance_chunks(
+        self, targets: np.ndarray, chunk: int, stop: ChunkStop
+    ) -> list[tuple[bool, float, float]]:
+        """`_advance` chunk after chunk in one compiled call (`push_chunks`), stopping after
+        the first chunk whose state `stop` names, or whose tilt is half way to the protocol's
+        `tip_limit_deg` (an engine's object is never exactly flat), or that raised an unstable
+        warning (`_engine_failure`). The steps are those of `_advance` on each chunk: the
+        pusher put on its path before every step, on its last target after the call. A
+        chunk's tilt is the larger of `_advance`'s and its state's (`ObjectState.tilt_deg`,
+        which the protocol's check would add); the yaw as `object_state` reads it. A traced
+        run (`trace`) goes one chunk at a time."""
+        if self.trace is not None:
+            touched, tilt = self._advance(targets[:chunk])
+            return [(touched, tilt, self.object_state().pose.yaw_rad)]
+        m, d = self._require()
+        dt = self.settings.timestep_s
+        n = len(targets) // chunk
+        targets = np.asarray(targets[: n * chunk], dtype=float)
+        path = np.concatenate((self._pusher_xy()[None, :], targets))
+        vels = (path[1:] - path[:-1]) / dt  # as `_advance` computes each chunk's
+        starts = path[:-1]
+        rule = np.array(
+            (*stop.box, stop.rest_speed_m_s, stop.rest_spin_rad_s,
+             math.cos(math.radians(self.settings.tip_limit_deg / 2.0)))
+        )  # fmt: skip
+        rest = np.ascontiguousarray(stop.rest_after[:n], dtype=np.bool_)
+        qpos, qvel, xipos, xfrc, sensordata = self._views
+        f = self._fric
+        record = _NO_RECORD if f.inputs is None else np.zeros((len(starts), 5))
+        out = np.empty((n, 7))
+        done = _push_chunks_call(
+            m._address, d._address, self.contact.substeps, qpos, qvel, xipos, xfrc,
+            sensordata, self._sensor_adr, self._obj_qadr, self._obj_vadr, self._px_qadr,
+            self._px_vadr, self._obj_body, self._com_local, starts, vels, f.geo, f.fs,
+            f.normal, f.dxw, f.dyw, dt, self._pushed, record, chunk, rule, rest,
+            self._warning_numbers, _UNSTABLE_WARNING_INDEX, self._warnings0, out,
+        )  # fmt: skip
+        if f.inputs is not None:
+            f.inputs.extend(
+                (x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record[: done * chunk].tolist()
+            )
+        self._pushed = bool(out[done - 1, 2])
+        last, vel = targets[done * chunk - 1], vels[done * chunk - 1]
+        self._set_pusher((float(last[0]), float(last[1])), (float(vel[0]), float(vel[1])))
+        ran = []
+        for row in out[:done]:
+            roll, pitch, yaw = _quat_to_rpy(row[3:7])
+            tilt = max(_tilt_deg_of_cos(float(row[1])), tilt_deg(roll, pitch))
+            ran.append((bool(row[0]), tilt, yaw))
+        return ran
+
     def _jump_pusher(self, targets: np.ndarray) -> None:
         """The pusher on its last target at its last step's velocity, as `_advance` leaves it
         (`push_steps` puts it on its path before every step anyway)."""
@@ -794,6 +908,7 @@ class MujocoSimulator(Simulator):
         self._close_renderer()
         self.model = self.data = None
         self._xml = None
+        self._models.clear()
 
 
 # The backend's revision and settings live in backends/physics_settings.py: bump the

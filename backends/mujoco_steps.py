@@ -137,5 +137,72 @@ def push_steps(
     return touched, pushed, min_cos_tilt
 
 
+@njit(cache=True)
+def push_chunks(
+    m_ptr, d_ptr, substeps, qpos, qvel, xipos, xfrc, sensordata, sensor_adr,
+    obj_q, obj_v, pusher_q, pusher_v, body, com_local, starts, vels,
+    geo, fs, normal, dxw, dyw, dt, pushed, record,
+    chunk, rule, rest_after, warnings, warning_index, warnings0, out,
+):  # fmt: skip
+    """`push_steps` over each whole chunk of `chunk` rows in turn (the protocol's `_advance`
+    calls, one compiled call), stopping after the first chunk whose state `chunk_stops`
+    names (the rest rule after those `rest_after` marks). Per chunk run, `out` gets (touched,
+    the least cosine of its tilt, touching after it, the object's quaternion after it).
+    `record` as `push_steps`' (one row per step, or 0 rows). Returns how many chunks ran."""
+    n = starts.shape[0] // chunk
+    rot = np.empty(9)
+    for c in range(n):
+        a, b = c * chunk, (c + 1) * chunk
+        rec = record[a:b] if record.shape[0] else record
+        touched, pushed, min_cos = push_steps(
+            m_ptr, d_ptr, substeps, qpos, qvel, xipos, xfrc, sensordata, sensor_adr,
+            obj_q, obj_v, pusher_q, pusher_v, body, com_local, starts[a:b], vels[a:b],
+            geo, fs, normal, dxw, dyw, dt, pushed, rec,
+        )  # fmt: skip
+        out[c, 0] = 1.0 if touched else 0.0
+        out[c, 1] = min_cos
+        out[c, 2] = 1.0 if pushed else 0.0
+        for k in range(4):
+            out[c, 3 + k] = qpos[obj_q + 3 + k]
+        if chunk_stops(
+            qpos, qvel, obj_q, obj_v, min_cos, rule, rest_after[c], warnings, warning_index,
+            warnings0, rot,
+        ):  # fmt: skip
+            return c + 1
+    return n
+
+
+@njit(cache=True)
+def chunk_stops(
+    qpos, qvel, obj_q, obj_v, min_cos, rule, rest, warnings, warning_index, warnings0, rot
+):  # fmt: skip
+    """`ChunkStop`'s rule on MuJoCo's state (`MujocoSimulator._advance_chunks`); `rule` =
+    (x_lo, x_hi, y_lo, y_hi, rest speed, rest spin, least cosine of the tilt): a coordinate
+    not finite, more of the engine's unstable warnings than `warnings0`
+    (`MujocoSimulator._engine_failure`), the chunk's tilt past the cosine's, the object
+    frame's origin outside the box, or (`rest`) the origin's |v_x| + |v_y| and the spin
+    about world z below the rest limits."""
+    for i in range(7):
+        if not math.isfinite(qpos[obj_q + i]):
+            return True
+    for i in range(6):
+        if not math.isfinite(qvel[obj_v + i]):
+            return True
+    count = 0
+    for k in warning_index:
+        count += warnings[k]
+    if count > warnings0 or min_cos < rule[6]:
+        return True
+    x, y = qpos[obj_q], qpos[obj_q + 1]
+    if not (rule[0] <= x <= rule[1] and rule[2] <= y <= rule[3]):
+        return True
+    if not rest:
+        return False
+    _mju_quat2mat(rot.ctypes.data, qpos.ctypes.data + 8 * (obj_q + 3))
+    # the free joint's angular velocity is in the body frame: world z is the matrix's last row
+    wz = rot[6] * qvel[obj_v + 3] + rot[7] * qvel[obj_v + 4] + rot[8] * qvel[obj_v + 5]
+    return abs(qvel[obj_v]) + abs(qvel[obj_v + 1]) < rule[4] and abs(wz) < rule[5]
+
+
 # the chunk above compiles the friction kernel into its own machine code
 stamp_with_sources(globals(), floor_friction)

@@ -200,7 +200,8 @@ class EngineStepsInPushes:
     compiled loop, where no timer reaches: before every chunk of the pass the engine's
     integration state is saved (`mj_getState`), and after each episode, while its model is
     still built, every chunk is replayed from its state as one `mj_step(m, d, n)` (the pusher
-    coasting at its velocity, the floor's friction force of the chunk's first step held)."""
+    coasting at its velocity, the floor's friction force of the chunk's first step held); in
+    that pass MuJoCo runs one chunk per call (`batches_chunks` off: the same steps)."""
 
     def __init__(self, sim: Simulator) -> None:
         self.sim = sim
@@ -283,6 +284,10 @@ class EngineStepsInPushes:
                 return fn(m, d, starts, vels)
 
             sim._friction_steps = snapped  # type: ignore[attr-defined]
+            # this pass runs one chunk per call (the same steps: `_advance_chunks` runs
+            # `_advance`'s), so that every chunk has its state saved
+            self._batches = sim.batches_chunks
+            sim.batches_chunks = False
         return self
 
     def replay(self) -> None:
@@ -319,6 +324,7 @@ class EngineStepsInPushes:
             self._restore_push()
         elif self.sim.name == "mujoco":
             del self.sim._friction_steps  # back to the class's method
+            self.sim.batches_chunks = self._batches
 
 
 def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[str, Any]:

@@ -14,11 +14,13 @@ import math
 import numpy as np
 import pytest
 import shapely.geometry
+from physics_helpers import BATCH_CASES, push_on_view
 
+from comexp.experiment.contact import pusher_contact_height_m
 from comexp.experiment.objects import com_points, load_objects
 from comexp.experiment.simulator import PushStatus, contact_push
 from comexp.method.geometry import box_object, signed_area
-from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, SceneSpec
+from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PusherSpec, SceneSpec
 
 mujoco_sim = pytest.importorskip("comexp.backends.mujoco_sim")
 
@@ -199,6 +201,40 @@ def test_a_rebuild_at_another_pose_reuses_the_model_and_a_new_object_does_not(si
     assert sim._xml == mujoco_sim.scene_mjcf(other, sim.settings, sim.contact, sim.floor_friction)
 
 
+@pytest.mark.parametrize("floor_friction", ["model", "native"])
+def test_the_conditions_of_a_batch_share_kept_models(floor_friction):
+    """Under `floor_friction=model` the floor's friction is not in the MJCF: scenes that
+    differ in it alone share one compiled model (native: each has its own). The last
+    `KEPT_MODELS` models are kept, and a push on a kept one is the push of a fresh
+    simulator, to the bit."""
+    from dataclasses import replace
+
+    sim = mujoco_sim.MujocoSimulator(floor_friction=floor_friction)
+    scene = _box_scene(0.3)
+    other_floor = replace(scene, floor=FloorSpec(0.9, 0.2))
+    other_pusher = replace(
+        scene, obj=box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.9)
+    )
+    sim.build(scene)
+    first = sim.model
+    sim.build(other_pusher)
+    assert sim.model is not first
+    sim.build(other_floor)
+    assert (sim.model is first) == (floor_friction == "model")
+    contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
+    cmd = contact_push(contact, (math.cos(0.3), math.sin(0.3)), 0.03, 0.4, 0.005)
+    kept = sim.push(cmd), sim.object_state()
+    fresh = mujoco_sim.MujocoSimulator(floor_friction=floor_friction)
+    fresh.build(other_floor)
+    assert kept == (fresh.push(cmd), fresh.object_state())
+    assert kept[0].contact_made and abs(kept[0].true_rotation_deg) > 1.0
+    for k in range(mujoco_sim.KEPT_MODELS + 1):  # the oldest is dropped
+        sim.build(replace(scene, obj=box_object(0.08, 0.05, 0.03, com_m=(0.0, 0.001 * k))))
+    assert len(sim._models) == mujoco_sim.KEPT_MODELS
+    sim.close()
+    fresh.close()
+
+
 def _box_scene(mu: float) -> SceneSpec:
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.01), mu_pusher=0.5)
     return SceneSpec(FloorSpec(mu, mu), obj, initial_pose=Pose2D(0.0, 0.0, 0.3))
@@ -319,3 +355,103 @@ def test_a_build_is_the_settle_at_its_pose(floor_friction):
             assert np.abs(built[1] - d.qvel[v : v + 6]).max() < 1e-14  # it sinks at 1e-11 m/s
     finally:
         sim.close()
+
+
+class _OneChunkAtATime(mujoco_sim.MujocoSimulator):
+    """MuJoCo without `_advance_chunks`: the protocol runs and checks one chunk per call."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches_chunks = False
+
+
+@pytest.fixture(scope="module")
+def batched_and_one_by_one():
+    return mujoco_sim.MujocoSimulator(), _OneChunkAtATime()
+
+
+@pytest.mark.parametrize("case", sorted(BATCH_CASES))
+@pytest.mark.parametrize("every", [1, 3])
+def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(
+    batched_and_one_by_one, case, every
+):
+    """MuJoCo runs the protocol's chunks up to the next frame it renders (or until its stop
+    rule: near rest, near the view's edge, tilted, a warning) in one compiled call
+    (`push_chunks`), past the due frames the tracker declines; the outcome (its largest tilt
+    too), the frames, the still times and the state after are those of one chunk per call,
+    to the bit."""
+    batched, one_by_one = batched_and_one_by_one
+    floor, pose, start, speed, length = BATCH_CASES[case]
+    obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
+    cmd = contact_push(start, (1.0, 0.0), length, speed, 0.005)
+    calls, below = [], []
+
+    def run_chunks(*args):
+        calls.append(type(batched)._advance_chunks(batched, *args))
+        # the last chunk's tilt covers the state's (as it does every passed chunk's)
+        below.append(calls[-1][-1][1] < batched.object_state().tilt_deg)
+        return calls[-1]
+
+    batched._advance_chunks = run_chunks
+    try:
+        a = push_on_view(batched, floor, obj, Pose2D(*pose), cmd, True, every)
+    finally:
+        del batched._advance_chunks
+    b = push_on_view(one_by_one, floor, obj, Pose2D(*pose), cmd, True, every)
+    assert a == b
+    assert not any(below)
+    assert max(len(c) for c in calls) >= (5 if every > 1 else 3)  # chunks ran in one call
+    assert a[0].max_tilt_deg > 0.0  # an engine's object is never exactly flat
+    if case == "out of view":
+        assert a[0].status is PushStatus.LEFT_VIEW
+
+
+def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one(batched_and_one_by_one):
+    """Near the tipping onset the block pitches and settles back (chunks pass with their
+    tilt), a tall one tips over at 40 cm/s: the batch stops once the tilt is half way to the
+    protocol's limit, and the outcome and state are those of one chunk per call."""
+    batched, one_by_one = batched_and_one_by_one
+    d = pusher_contact_height_m(PusherSpec(), 0.02) - 0.0005
+    block = box_object(0.03, 0.03, 0.02, com_m=(0.015 - d, 0.0), mu_pusher=0.5)
+    cmd = contact_push((-0.015, 0.0), (1.0, 0.0), 0.03, 0.4, 0.005)
+    floor, pose = FloorSpec(1.0, 1.0), Pose2D(0.0, 0.0, 0.0)
+    a = push_on_view(batched, floor, block, pose, cmd, True)
+    assert a == push_on_view(one_by_one, floor, block, pose, cmd, True)
+    assert a[0].max_tilt_deg > 0.5
+    tall = box_object(0.02, 0.02, 0.12, mu_pusher=1.0)  # the contract's (tests/test_contract.py)
+    cmd = contact_push((-0.01, 0.0), (1.0, 0.0), 0.03, 0.4, 0.005)
+    a = push_on_view(batched, floor, tall, pose, cmd, True)
+    assert a == push_on_view(one_by_one, floor, tall, pose, cmd, True)
+    assert a[0].status is PushStatus.TIPPED
+
+
+def test_a_batch_stops_at_each_of_its_rules(batched_and_one_by_one):
+    """`chunk_stops` on a built scene at rest: nothing stops it but the rest rule where it
+    is asked; a coordinate not finite, one unstable warning more than at the build, a tilt
+    past the rule's cosine, the origin outside the box each stop it."""
+    from comexp.backends.mujoco_steps import chunk_stops
+
+    sim = batched_and_one_by_one[0]
+    sim.build(SceneSpec(FloorSpec(0.5, 0.5), box_object(0.08, 0.05, 0.03, com_m=(0.01, 0.0))))
+    qpos, qvel = sim.data.qpos.copy(), sim.data.qvel.copy()
+    warnings = sim._warning_numbers.copy()
+    index = mujoco_sim._UNSTABLE_WARNING_INDEX
+    rule = np.array((-1.0, 1.0, -1.0, 1.0, 1e-3, 1e-3, math.cos(math.radians(7.5))))
+
+    def stops(qpos=qpos, qvel=qvel, min_cos=1.0, rule=rule, rest=False, warnings=warnings):
+        return chunk_stops(qpos, qvel, sim._obj_qadr, sim._obj_vadr, min_cos, rule, rest,
+                           warnings, index, sim._warnings0, np.empty(9))  # fmt: skip
+
+    assert not stops() and stops(rest=True)
+    moving = qvel.copy()
+    moving[sim._obj_vadr + 5] = 0.01  # spinning about its own z: not near rest
+    assert not stops(qvel=moving, rest=True)
+    for arr, i in ((qpos, sim._obj_qadr + 4), (qvel, sim._obj_vadr + 1)):
+        bad = arr.copy()
+        bad[i] = math.nan
+        assert stops(**{"qpos" if arr is qpos else "qvel": bad})
+    warned = warnings.copy()
+    warned[index[-1]] += 1
+    assert stops(warnings=warned)
+    assert stops(min_cos=math.cos(math.radians(8.0)))
+    assert stops(rule=np.array((0.5, 1.0, *rule[2:])))

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from physics_helpers import BATCH_CASES, push_on_view
 
 from comexp.backends.floor_friction import FrictionSettings, WinklerPressure, footprint_samples
 from comexp.backends.planar_sim import PlanarSimulator, SlowSteps
@@ -380,52 +381,22 @@ class _OneChunkAtATime(PlanarSimulator):
     batches_chunks = False
 
 
-def _push_on_view(sim, floor, obj, pose, cmd, watch: bool, every: int = 1):
-    """A push with the camera on (or off): its outcome, every frame's time, pusher and
-    image sum, the still times and the state after. `every` > 1: a tracker that wants every
-    `every`-th due frame (`frame_wanted`, asked ahead by a batching backend)."""
-    sim.build(SceneSpec(floor, obj, initial_pose=pose))
-    frames, still = [], []
-
-    def wanted(t_s: float, driving: bool) -> bool:
-        return round(t_s * 30.0) % every == 0
-
-    out = sim.push(
-        cmd,
-        on_frame=lambda f: frames.append((f.t_s, f.pusher_xy_m, float(f.image.depth_m.sum()))),
-        frame_interval_s=1.0 / 30.0 if watch else 0.0,
-        on_still=still.append,
-        frame_wanted=wanted if every > 1 else None,
-    )
-    return out, frames, still, sim.object_state()
-
-
-_BATCH_CASES = {  # floor, initial pose, contact, speed, push length: every way a batch stops
-    "slide iso 40": (FloorSpec(0.3, 0.3), (0.0, 0.0, 0.3), (-0.05, 0.01), 0.4, 0.03),
-    "sustained aniso 4": (FloorSpec(0.1, 1.0), (0.0, 0.0, 0.0), (-0.045, 0.012), 0.04, 0.03),
-    "slide aniso 40": (FloorSpec(1.0, 0.1), (0.01, -0.02, 0.2), (-0.045, -0.01), 0.4, 0.03),
-    "out of view": (FloorSpec(0.05, 0.05), (0.21, 0.0, 0.0), (0.165, 0.0), 0.4, 0.03),
-    # a path of 115 steps: it ends in part of a chunk
-    "part of a chunk": (FloorSpec(0.3, 0.3), (0.0, 0.0, 0.0), (-0.04, 0.01), 0.4, 0.0357),
-}
-
-
-@pytest.mark.parametrize("case", sorted(_BATCH_CASES))
+@pytest.mark.parametrize("case", sorted(BATCH_CASES))
 @pytest.mark.parametrize(("watch", "every"), [(True, 1), (True, 3), (False, 1)])
 def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(case, watch, every):
     """planar runs the protocol's chunks up to the next frame it renders (or until its
     `ChunkStop`: near rest, near the view's edge, tilted) in one compiled call, past the due
     frames the tracker declines; the outcome, the frames, the still times and the state
     after are those of one chunk per call, to the bit."""
-    floor, pose, start, speed, length = _BATCH_CASES[case]
+    floor, pose, start, speed, length = BATCH_CASES[case]
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
     cmd = contact_push(start, (1.0, 0.0), length, speed, 0.005)
     batched = PlanarSimulator()
     calls = []
     run_chunks = batched._advance_chunks
     batched._advance_chunks = lambda *a: calls.append(run_chunks(*a)) or calls[-1]
-    a = _push_on_view(batched, floor, obj, Pose2D(*pose), cmd, watch, every)
-    b = _push_on_view(_OneChunkAtATime(), floor, obj, Pose2D(*pose), cmd, watch, every)
+    a = push_on_view(batched, floor, obj, Pose2D(*pose), cmd, watch, every)
+    b = push_on_view(_OneChunkAtATime(), floor, obj, Pose2D(*pose), cmd, watch, every)
     assert a == b
     if every > 1:  # past declined frames: longer calls than between two due frames (3.3)
         assert max(len(c) for c in calls) >= 5
@@ -479,16 +450,16 @@ def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one():
     block = box_object(0.03, 0.03, 0.02, com_m=(0.015 - d, 0.0), mu_pusher=0.5)
     cmd = contact_push((-0.015, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005)
     floor, pose = FloorSpec(1.0, 1.0), Pose2D(0.0, 0.0, 0.0)
-    a = _push_on_view(PlanarSimulator(), floor, block, pose, cmd, True)
-    b = _push_on_view(_OneChunkAtATime(), floor, block, pose, cmd, True)
+    a = push_on_view(PlanarSimulator(), floor, block, pose, cmd, True)
+    b = push_on_view(_OneChunkAtATime(), floor, block, pose, cmd, True)
     assert a == b and a[0].max_tilt_deg > 2.0
     # and one that tips over (the protocol's TIPPED at the chunk where it passes the limit)
     tall = prism_object("tall", [(-0.01, -0.01), (0.01, -0.01), (0.01, 0.01), (-0.01, 0.01)],
                         0.12, (0, 0))  # fmt: skip
     cmd = contact_push((-0.01, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005)
     for watch in (True, False):
-        a = _push_on_view(PlanarSimulator(), floor, tall, pose, cmd, watch)
-        b = _push_on_view(_OneChunkAtATime(), floor, tall, pose, cmd, watch)
+        a = push_on_view(PlanarSimulator(), floor, tall, pose, cmd, watch)
+        b = push_on_view(_OneChunkAtATime(), floor, tall, pose, cmd, watch)
         assert a == b and a[0].status is PushStatus.TIPPED
 
 

@@ -95,12 +95,14 @@ class Frame:
 class ChunkStop:
     """Where a backend that runs several of the protocol's chunks in one call
     (`Simulator._advance_chunks`) stops, so that the protocol's own check sees that chunk's
-    state: after a chunk that leaves the state not finite, the object not flat on the floor,
-    its frame's origin outside `box` (x_lo, x_hi, y_lo, y_hi: `surely_in_view_box`), or,
-    after the chunks `rest_after` marks, the object near rest (the origin's |v_x| + |v_y|
-    below `rest_speed_m_s` and |omega_z| below `rest_spin_rad_s`: twice the settle limits, a
-    superset of `at_rest`). Every chunk it does not stop after is one the check passes
-    without a failure, a rendered frame or a rest."""
+    state: after a chunk that leaves the state not finite, the object tilted (planar: not
+    flat on the floor; an engine, whose object never is exactly: half way to `tip_limit_deg`),
+    its frame's origin outside `box` (x_lo, x_hi, y_lo, y_hi: `surely_in_view_box`), the
+    engine with a failure of its own (`_engine_failure`), or, after the chunks `rest_after`
+    marks, the object near rest (the origin's |v_x| + |v_y| below `rest_speed_m_s` and
+    |omega_z| below `rest_spin_rad_s`: twice the settle limits, a superset of `at_rest`).
+    Every chunk it does not stop after is one the check passes without a failure, a
+    rendered frame or a rest."""
 
     box: tuple[float, float, float, float]
     rest_speed_m_s: float
@@ -162,7 +164,8 @@ class Simulator(ABC):
     # rest by the settle rule may have); None: still steps are stepped
     still_jumps: Any = None
     # `_advance_chunks` runs several chunks in one call (the backend's pusher is then on its
-    # target after every chunk, and the backend has no failures of its own: `_engine_failure`)
+    # target after every chunk, and it stops after a chunk where `_engine_failure` would say
+    # anything)
     batches_chunks: bool = False
 
     def __init__(self, settings: SimSettings | None = None) -> None:
@@ -277,7 +280,9 @@ class Simulator(ABC):
         """With `batches_chunks`: advance the whole chunks of `targets` (`chunk` steps each,
         every one exactly as an `_advance` call of it), stopping after the first one whose
         state `stop` names; per chunk advanced, (touched, its tilt as `_advance` returns it,
-        the yaw `object_state().pose.yaw_rad` would then read)."""
+        the yaw `object_state().pose.yaw_rad` would then read; an engine's tilt also covers
+        `object_state().tilt_deg`'s, which the protocol's check adds and `_passed` does
+        not)."""
         raise NotImplementedError(f"{self.name}: batches_chunks set without _advance_chunks")
 
     def _engine_failure(self) -> PushStatus | None:
