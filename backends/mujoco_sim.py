@@ -31,7 +31,7 @@ import functools
 import math
 import os
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import shapely
@@ -143,7 +143,7 @@ def scene_mjcf(
     obj, floor, pusher, cam = scene.obj, scene.floor, scene.pusher, scene.camera
     h = obj.height_m
     assets, obj_geoms = _object_geoms(obj, contact)
-    supports, n_core = _support_geoms(obj, contact)
+    supports, n_core = _support_geoms(obj, contact, floor_friction)
     obj_geoms += supports
     pairs = _contact_pairs(obj, floor, contact, floor_friction, len(supports), n_core)
     ix, iy, iz = obj.ixx_kg_m2, obj.iyy_kg_m2, obj.izz_kg_m2
@@ -223,10 +223,25 @@ def _object_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[list
     return assets, obj_geoms
 
 
-def _support_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[tuple[str, ...], int]:
+def _support_geoms(
+    obj: ObjectSpec, contact: MujocoContactSettings, floor_friction: str = "model"
+) -> tuple[tuple[str, ...], int]:
     """The object's floor supports as invisible sphere geoms (`_support_points`: the core,
-    then the rim) and how many of them are the core's."""
-    return _support_geoms_of(obj.outline_m, obj.com_m, contact)
+    then the rim) and how many of them are the core's, laid out by `_support_settings`."""
+    return _support_geoms_of(obj.outline_m, obj.com_m, _support_settings(contact, floor_friction))
+
+
+def _support_settings(contact: MujocoContactSettings, floor_friction: str) -> MujocoContactSettings:
+    """The settings the floor supports are laid out with: `support_spacing_m` and
+    `support_min_points` where they carry MuJoCo's friction (`native`), the `_model` ones
+    where they carry the weight only (`model`); no supports where `support_spacing_m` is 0."""
+    if floor_friction != "model" or contact.support_spacing_m <= 0:
+        return contact
+    return replace(
+        contact,
+        support_spacing_m=contact.support_spacing_model_m,
+        support_min_points=contact.support_min_points_model,
+    )
 
 
 @functools.lru_cache(maxsize=16)

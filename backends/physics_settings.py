@@ -91,6 +91,10 @@ class MujocoContactSettings:
     multiccd: bool = True
     use_box_geoms: bool = True  # rectangles as primitive boxes (exact box-box collider)
     support_spacing_m: float = 0.01  # > 0: floor contact through small spheres (see header)
+    # floor_friction=model: the supports carry the weight only (condim 1; the footprint model
+    # supplies the friction), so a coarser core does (docs/physics_mujoco.md)
+    support_spacing_model_m: float = 0.02
+    support_min_points_model: int = 4
     support_min_points: int = 8  # the grid spacing is halved until the core has this many
     support_layout: str = "symmetric"  # "grid": uniform grid over the footprint (comparison)
     support_radius_m: float = 0.001
@@ -164,8 +168,9 @@ MUJOCO = BackendPhysics(
     # friction's line search (results moved within the solver's tolerance); 6: the footprint's
     # sample loops as SIMD loops (last-bit differences); 7: still steps jumped (`StillJumps`);
     # 8: the footprint friction's 3x3 solves in scalars and its line search's trials with their
-    # gradients (last-bit differences)
-    "mujoco-8",
+    # gradients (last-bit differences); 9: under the model, floor supports 2 cm apart, halved
+    # down to 4 core points (were 1 cm, 8 points)
+    "mujoco-9",
     "mujoco",
     (DEFAULT_CONTACT, FrictionSettings(), STILL_JUMPS),
 )

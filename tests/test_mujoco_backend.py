@@ -146,14 +146,18 @@ def test_builtin_object_rests_renders_and_slides(sim, name):
     assert st.tilt_deg < 1.0
 
 
-@pytest.mark.parametrize("name", ["l_shape", "triangle_right_11x7", "u_shape"])
-def test_floor_core_is_point_symmetric_about_the_com(name):
+@pytest.mark.parametrize("floor_friction", ["native", "model"])
+@pytest.mark.parametrize("name", ["l_shape", "triangle_right_11x7", "u_shape", "square_7"])
+def test_floor_core_is_point_symmetric_about_the_com(name, floor_friction):
+    """Either layout (native: the supports carry MuJoCo's friction; model: the weight only,
+    coarser) is point-symmetric about the CoM, with a support by every tipping corner."""
     obj = load_objects([name])[name]
     spec = obj.model(com_points(obj, 1)[0], izz_scale=1.0, mu_pusher=0.5)
-    core, rim = mujoco_sim._support_points(spec.outline_m, spec.com_m, mujoco_sim.DEFAULT_CONTACT)
+    layout = mujoco_sim._support_settings(mujoco_sim.DEFAULT_CONTACT, floor_friction)
+    core, rim = mujoco_sim._support_points(spec.outline_m, spec.com_m, layout)
     c = np.asarray(spec.com_m)
     pts = np.asarray(core)
-    assert len(pts) >= mujoco_sim.DEFAULT_CONTACT.support_min_points
+    assert len(pts) >= layout.support_min_points
     mirrored = 2.0 * c - pts
     gaps = np.min(np.linalg.norm(mirrored[:, None, :] - pts[None, :, :], axis=2), axis=1)
     assert gaps.max() < 1e-9  # every support has its mirror image: contact centre = CoM
@@ -162,6 +166,26 @@ def test_floor_core_is_point_symmetric_about_the_com(name):
     rim_a = np.asarray(rim)
     for v in hull[:-1]:  # every tipping corner has a support next to it
         assert np.min(np.linalg.norm(rim_a - v, axis=1)) < 6e-3  # acute corners: inset
+
+
+def test_the_model_s_supports_are_coarser_than_native_s():
+    """Under `floor_friction=model` the supports carry the weight only: 2 cm apart, halved
+    down to 4 core points (mujoco-9), fewer than native's 1 cm and 8 on the study's objects."""
+    objs = load_objects()
+    counts = {}
+    for ff in ("native", "model"):
+        layout = mujoco_sim._support_settings(mujoco_sim.DEFAULT_CONTACT, ff)
+        counts[ff] = []
+        for obj in objs.values():
+            spec = obj.model(com_points(obj, 1)[0], izz_scale=1.0, mu_pusher=0.5)
+            counts[ff].append(
+                len(mujoco_sim._support_points(spec.outline_m, spec.com_m, layout)[0])
+            )
+    assert all(m <= n for m, n in zip(counts["model"], counts["native"], strict=True))
+    assert sum(counts["model"]) < 0.6 * sum(counts["native"])
+    assert min(counts["model"]) >= 4
+    naive = mujoco_sim.NAIVE_CONTACT  # no supports stays none
+    assert mujoco_sim._support_settings(naive, "model") is naive
 
 
 def test_renderer_is_reused_across_object_changes(sim):
