@@ -4,8 +4,8 @@ Closed forms where they exist (mu g deceleration along each floor axis, the elli
 diagonal slides, spin-down under linear pressure centred under the CoM, no turn for a normal
 push through the CoM), the planar backend as the truth where they don't (turn magnitudes, the
 coupled slide-and-spin of a disc). Every backend passes all of it; a case an engine cannot
-pass is marked xfail with its measured value and listed in docs/physics.md (one today:
-MuJoCo's quasi-static tipping case).
+pass is marked xfail with its measured value and listed in docs/physics.md (two today:
+MuJoCo's quasi-static tipping cases, the block past the onset and the tall block).
 """
 
 from __future__ import annotations
@@ -386,12 +386,20 @@ def test_a_low_object_neither_lifts_nor_tilts(sim, name):
     assert lift <= 2e-4 and tilt <= 0.5, f"{sim.name}: lift {lift * 1e3:.2f} mm, tilt {tilt:.2f}"
 
 
-def test_a_tall_object_tips_and_the_push_says_so(sim):
+@pytest.mark.parametrize("speed", [0.4, 0.04])
+def test_a_tall_object_tips_and_the_push_says_so(sim, speed, request):
+    """A 2 x 2 x 12 cm block pushed low on mu 1 (mu z_p 3.2 cm against a 1 cm half width).
+    Quasi-static, MuJoCo's capsule keeps it up (measured: `ok`, 0.28 deg), as it keeps every
+    block up at 4 cm/s (docs/physics.md, "Tipping")."""
+    if sim.name == "mujoco" and speed < 0.1:
+        request.applymarker(pytest.mark.xfail(strict=True, reason="measured ok, 0.28 deg"))
     tall = box_object(0.02, 0.02, 0.12, mu_pusher=1.0)
     scene = SceneSpec(FloorSpec(1.0, 1.0), tall)
     sim.build(scene)
-    out = sim.push(contact_push((-0.01, 0.0), (1.0, 0.0), PUSH_LENGTH_M, 0.4, 0.005))
-    assert out.status is PushStatus.TIPPED
+    out = sim.push(contact_push((-0.01, 0.0), (1.0, 0.0), PUSH_LENGTH_M, speed, 0.005))
+    assert out.status is PushStatus.TIPPED, (
+        f"{sim.name}: {out.status.value}, {out.max_tilt_deg:.2f}"
+    )
 
 
 def _hexagon_flat_to_x(radius_m: float, height_m: float, com_x_m: float):
