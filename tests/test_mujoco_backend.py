@@ -391,7 +391,10 @@ class _OneChunkAtATime(mujoco_sim.MujocoSimulator):
 
 @pytest.fixture(scope="module")
 def batched_and_one_by_one():
-    return mujoco_sim.MujocoSimulator(), _OneChunkAtATime()
+    sims = mujoco_sim.MujocoSimulator(), _OneChunkAtATime()
+    yield sims
+    for s in sims:
+        s.close()
 
 
 @pytest.mark.parametrize("case", sorted(BATCH_CASES))
