@@ -712,13 +712,9 @@ class MujocoSimulator(Simulator):
         constant pusher velocity go to MuJoCo as one `mj_step(m, d, n)`. With `trace` set,
         steps go one at a time and every step's state is recorded."""
         m, d = self._require()
-        dt = self.settings.timestep_s
         sub = self.contact.substeps
-        prev = self._pusher_xy()
         targets = np.asarray(targets, dtype=float)
-        path = np.concatenate((prev[None, :], targets))  # where each step starts, then ends
-        vel = (path[1:] - path[:-1]) / dt
-        starts = path[:-1]
+        starts, vel = self._pusher_path(targets)
         touched = False
         min_cos = 1.0
         i = 0
@@ -748,7 +744,7 @@ class MujocoSimulator(Simulator):
             if self.trace is not None:
                 self.trace.append(self.object_state())
             i = j
-        last = targets[-1] if n_all else prev
+        last = targets[-1] if n_all else self._pusher_xy()
         self._set_pusher(
             (float(last[0]), float(last[1])),
             (float(vel[-1, 0]), float(vel[-1, 1])) if n_all else (0.0, 0.0),
@@ -770,32 +766,21 @@ class MujocoSimulator(Simulator):
             touched, tilt = self._advance(targets[:chunk])
             return [(touched, tilt, self.object_state().pose.yaw_rad)]
         m, d = self._require()
-        dt = self.settings.timestep_s
         n = len(targets) // chunk
         targets = np.asarray(targets[: n * chunk], dtype=float)
-        path = np.concatenate((self._pusher_xy()[None, :], targets))
-        vels = (path[1:] - path[:-1]) / dt  # as `_advance` computes each chunk's
-        starts = path[:-1]
+        starts, vels = self._pusher_path(targets)  # each chunk's as `_advance` makes it
         rule = np.array(
             (*stop.box, stop.rest_speed_m_s, stop.rest_spin_rad_s,
              math.cos(math.radians(self.settings.tip_limit_deg / 2.0)))
         )  # fmt: skip
         rest = np.ascontiguousarray(stop.rest_after[:n], dtype=np.bool_)
-        qpos, qvel, xipos, xfrc, sensordata = self._views
-        f = self._fric
-        record = _NO_RECORD if f.inputs is None else np.zeros((len(starts), 5))
+        args, record = self._loop_args(m, d, starts, vels)
         out = np.empty((n, 7))
         done = _push_chunks_call(
-            m._address, d._address, self.contact.substeps, qpos, qvel, xipos, xfrc,
-            sensordata, self._sensor_adr, self._obj_qadr, self._obj_vadr, self._px_qadr,
-            self._px_vadr, self._obj_body, self._com_local, starts, vels, f.geo, f.fs,
-            f.normal, f.dxw, f.dyw, dt, self._pushed, record, chunk, rule, rest,
-            self._warning_numbers, _UNSTABLE_WARNING_INDEX, self._warnings0, out,
+            *args, chunk, rule, rest, self._warning_numbers, _UNSTABLE_WARNING_INDEX,
+            self._warnings0, out,
         )  # fmt: skip
-        if f.inputs is not None:
-            f.inputs.extend(
-                (x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record[: done * chunk].tolist()
-            )
+        self._keep_inputs(record[: done * chunk])
         self._pushed = bool(out[done - 1, 2])
         last, vel = targets[done * chunk - 1], vels[done * chunk - 1]
         self._set_pusher((float(last[0]), float(last[1])), (float(vel[0]), float(vel[1])))
@@ -822,18 +807,38 @@ class MujocoSimulator(Simulator):
         (backends/floor_friction.py) as a force at the floor under the CoM, every step;
         MuJoCo's floor contacts are normal-only (condim 1), so its soft friction cone cannot
         raise the normal force. Returns (touched, touching now, least cosine of the tilt)."""
+        args, record = self._loop_args(m, d, starts, vels)
+        out = _push_steps_call(*args)
+        self._keep_inputs(record)
+        return out
+
+    def _pusher_path(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each step of `targets` starts (the pusher now, then each target before its
+        own) and the velocity that reaches its target within the step."""
+        path = np.concatenate((self._pusher_xy()[None, :], targets))
+        return path[:-1], (path[1:] - path[:-1]) / self.settings.timestep_s
+
+    def _loop_args(
+        self, m: mujoco.MjModel, d: mujoco.MjData, starts: np.ndarray, vels: np.ndarray
+    ) -> tuple[tuple, np.ndarray]:
+        """The arguments `push_steps` takes (and `push_chunks` begins with) on this scene, and
+        the array their `record` fills (no rows unless `FootprintFriction.inputs` records)."""
         qpos, qvel, xipos, xfrc, sensordata = self._views
         f = self._fric
         record = _NO_RECORD if f.inputs is None else np.zeros((len(starts), 5))
-        out = _push_steps_call(
+        args = (
             m._address, d._address, self.contact.substeps, qpos, qvel, xipos, xfrc,
             sensordata, self._sensor_adr, self._obj_qadr, self._obj_vadr, self._px_qadr,
             self._px_vadr, self._obj_body, self._com_local, starts, vels, f.geo, f.fs,
             f.normal, f.dxw, f.dyw, self.settings.timestep_s, self._pushed, record,
         )  # fmt: skip
-        if f.inputs is not None:
-            f.inputs.extend((x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record.tolist())
-        return out
+        return args, record
+
+    def _keep_inputs(self, record: np.ndarray) -> None:
+        """The friction inputs the steps recorded, onto `FootprintFriction.inputs`."""
+        inputs = self._fric.inputs
+        if inputs is not None:
+            inputs.extend((x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record.tolist())
 
     def _obj_quat(self) -> np.ndarray:
         q = self._obj_qadr
