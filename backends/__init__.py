@@ -1,1 +1,3 @@
-"""Simulator backends (one module per engine) behind comexp.experiment.interface.Simulator."""
+"""The simulators (one module per engine) behind the engine interface
+(`comexp.sim.simulator.Simulator`), each chosen by its config group option
+(conf/backend/NAME.yaml: `_target_`)."""

@@ -30,8 +30,8 @@ from numba import njit
 
 from comexp.backends.numba_kernels import DirectCall
 from comexp.backends.physics_settings import FrictionSettings  # with every backend's settings
-from comexp.experiment.contact import pusher_contact_height_m
-from comexp.method.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
+from comexp.sim.contact import pusher_contact_height_m
+from comexp.sim.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
 
 # The loops over the footprint's samples are compiled as SIMD loops: their sums may be
 # reassociated (summed in vector lanes) and multiply-adds fused, and a division follows IEEE

@@ -59,31 +59,33 @@ from comexp.backends.mujoco_steps import (  # noqa: E402
     pusher_touching,
 )
 from comexp.backends.numba_kernels import DirectCall  # noqa: E402
-from comexp.backends.physics_settings import (  # noqa: E402
+from comexp.backends.physics_settings import (  # noqa: E402  # noqa: E402
     DEFAULT_CONTACT,
+    FLOOR_FRICTION_CHOICES,
     MUJOCO,
+    RENDERER_CHOICES,
     STILL_JUMPS,
     MujocoContactSettings,
 )
-from comexp.experiment.interface import ChunkStop, PushStatus, Simulator  # noqa: E402
-from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES  # noqa: E402
-from comexp.experiment.view import crop_camera, object_window_px  # noqa: E402
-from comexp.method.scene import (  # noqa: E402
+from comexp.method.frames import DepthImage, Pose2D
+from comexp.sim.protocol import ChunkStop, JumpsStillSteps, RunsChunks  # noqa: E402
+from comexp.sim.scene import (
     GRAVITY_M_S2,
-    DepthImage,
     FloorSpec,
     ObjectSpec,
     ObjectState,
-    Pose2D,
+    PushStatus,  # noqa: E402
     SceneSpec,
     SimSettings,
     tilt_deg,
 )
+from comexp.sim.simulator import Simulator  # noqa: E402
+from comexp.sim.view import crop_camera, object_window_px  # noqa: E402
 
 _PARK_XY_M = (3.0, 3.0)  # far outside the floor and the camera frustum
 _NO_RECORD = np.zeros((0, 5))  # push_steps: no friction inputs recorded
-_push_steps_call = DirectCall(push_steps)  # a chunk of the protocol's steps (`_advance`)
-_push_chunks_call = DirectCall(push_chunks)  # chunks of them (`_advance_chunks`)
+_push_steps_call = DirectCall(push_steps)  # a chunk of the protocol's steps (`advance`)
+_push_chunks_call = DirectCall(push_chunks)  # chunks of them (`advance_chunks`)
 _UNSTABLE_WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQACC,
     mujoco.mjtWarning.mjWARN_BADQVEL,
@@ -143,23 +145,14 @@ def scene_mjcf(
     obj, floor, pusher, cam = scene.obj, scene.floor, scene.pusher, scene.camera
     h = obj.height_m
     assets, obj_geoms = _object_geoms(obj, contact)
-    supports, n_core = _support_geoms(obj, contact, floor_friction)
+    supports = _support_geoms(obj, contact, floor_friction)
     obj_geoms += supports
-    pairs = _contact_pairs(obj, floor, contact, floor_friction, len(supports), n_core)
+    pairs = _contact_pairs(obj, floor, contact, floor_friction, len(supports))
     ix, iy, iz = obj.ixx_kg_m2, obj.iyy_kg_m2, obj.izz_kg_m2
     half = floor.size_m / 2.0
     pz = pusher.clearance_m + pusher.length_m / 2.0
     extent = cam.far_m  # depth is metric when extent * znear/zfar are the camera's near/far
     flags = '<flag multiccd="enable"/>' if contact.multiccd else ""
-    sleeve_open = sleeve_close = ""
-    if contact.pusher_sleeve_kg > 0:
-        m_s = contact.pusher_sleeve_kg
-        sleeve_open = (
-            f'<body name="sleeve" gravcomp="1"><joint name="pusher_z" type="slide" '
-            f'axis="0 0 1" damping="{m_s * 200.0!r}"/>'
-            f'<inertial pos="0 0 0" mass="{m_s!r}" diaginertia="1e-6 1e-6 1e-6"/>'
-        )
-        sleeve_close = "</body>"
     return f"""<mujoco model="comexp_scene">
   <compiler angle="radian" inertiafromgeom="false"/>
   <option timestep="{settings.timestep_s / contact.substeps!r}" cone="{contact.cone}"
@@ -188,10 +181,8 @@ def scene_mjcf(
       <joint name="pusher_x" type="slide" axis="1 0 0"/>
       <joint name="pusher_y" type="slide" axis="0 1 0"/>
       <inertial pos="0 0 0" mass="{contact.pusher_mass_kg!r}" diaginertia="1 1 1"/>
-      {sleeve_open}
       <geom name="pusher" type="{contact.pusher_geom}"
             size="{_fmt(pusher.radius_m, pusher.length_m / 2)}" rgba="0.2 0.2 0.8 1"/>
-      {sleeve_close}
     </body>
   </worldbody>
   <contact>{"".join(pairs)}</contact>
@@ -225,9 +216,9 @@ def _object_geoms(obj: ObjectSpec, contact: MujocoContactSettings) -> tuple[list
 
 def _support_geoms(
     obj: ObjectSpec, contact: MujocoContactSettings, floor_friction: str = "model"
-) -> tuple[tuple[str, ...], int]:
+) -> tuple[str, ...]:
     """The object's floor supports as invisible sphere geoms (`_support_points`: the core,
-    then the rim) and how many of them are the core's, laid out by `_support_settings`."""
+    then the rim), laid out by `_support_settings`."""
     return _support_geoms_of(obj.outline_m, obj.com_m, _support_settings(contact, floor_friction))
 
 
@@ -249,21 +240,20 @@ def _support_geoms_of(
     outline: tuple[tuple[float, float], ...],
     com: tuple[float, float],
     contact: MujocoContactSettings,
-) -> tuple[tuple[str, ...], int]:
+) -> tuple[str, ...]:
     """`_support_geoms` of what it depends on: an object's outline and CoM, which the 8
     conditions of a worker's batch share (docs/performance.md), are laid out once."""
     core, rim = (
         _support_points(outline, com, contact) if contact.support_spacing_m > 0 else ([], [])
     )
     r_sup = contact.support_radius_m
-    zc = r_sup + contact.floor_margin_m  # hovers `floor_margin_m` up: object frame at z = 0
-    supports = [(x, y, zc) for x, y in core] + [(x, y, r_sup + contact.rim_lift_m) for x, y in rim]
-    geoms = tuple(
+    rim_z = r_sup + contact.rim_lift_m
+    supports = [(x, y, r_sup) for x, y in core] + [(x, y, rim_z) for x, y in rim]
+    return tuple(
         f'<geom name="sup{j}" type="sphere" size="{r_sup!r}" pos="{_fmt(x, y, z)}" '
         f'group="3" rgba="0 0 0 0"/>'
         for j, (x, y, z) in enumerate(supports)
     )
-    return geoms, len(core)
 
 
 def _contact_pairs(
@@ -272,7 +262,6 @@ def _contact_pairs(
     contact: MujocoContactSettings,
     floor_friction: str,
     n_supports: int,
-    n_core: int,
 ) -> list[str]:
     """The explicit contact pairs: floor with each support (or each object part when there
     are no supports), and pusher with each object part, at exactly the configured friction."""
@@ -281,22 +270,16 @@ def _contact_pairs(
     sref = f'solref="{solref}" solimp="{solimp}" solreffriction="{_fmt(*contact.solreffriction)}"'
     pairs = []
     floor_geoms = [f"sup{j}" for j in range(n_supports)] or [f"obj{i}" for i in range(n_parts)]
-    n_core = n_core if n_supports else len(floor_geoms)
-    for j, g in enumerate(floor_geoms):
-        # first tangent of a horizontal floor contact = world y, second = world x (see header);
-        # rim supports are frictionless (condim 1): they only stop a tilting object from
-        # sinking, and friction there would undo the core's symmetry whenever they touch
-        condim = 3 if j < n_core or not contact.rim_frictionless else 1
+    for g in floor_geoms:
+        # first tangent of a horizontal floor contact = world y, second = world x (see header)
+        condim = 3
         friction = f'friction="{_fmt(floor.mu_y, floor.mu_x, 0.0, 0.0, 0.0)}" '
         if floor_friction == "model":
             # normal support only: the footprint model supplies the friction, and the floor's
             # coefficients stay out of the MJCF (a condim 1 contact does not read them), so
             # scenes that differ in them share a compiled model (`_compiled_model`)
             condim, friction = 1, ""
-        margin = f'margin="{contact.floor_margin_m!r}" ' if j < n_core else ""
-        pairs.append(
-            f'<pair geom1="floor" geom2="{g}" condim="{condim}" {margin}{friction}{sref}/>'
-        )
+        pairs.append(f'<pair geom1="floor" geom2="{g}" condim="{condim}" {friction}{sref}/>')
     psref = sref
     if contact.pusher_solref is not None:
         psref = sref.replace(f'solref="{solref}"', f'solref="{_fmt(*contact.pusher_solref)}"')
@@ -331,8 +314,7 @@ def _support_points(
     Rim: the corners of the footprint's convex hull (inset), `rim_lift_m` above the floor:
     they carry no load at rest (and cost no contact rows) and take it when the object tilts
     beyond the core, so tipping happens about the true footprint and the object never sinks
-    past its edge. (`rim_grid` adds a grid over the rest of the footprint, `rim_frictionless`
-    makes the rim normal-only: both measured and not chosen, docs/physics_mujoco.md.)
+    past its edge.
     """
     from shapely.geometry import Point, Polygon
 
@@ -343,20 +325,13 @@ def _support_points(
     if not inner.contains(Point(c)):
         raise ValueError(f"CoM {tuple(com)} is not inside the footprint")
     x0, y0, x1, y1 = poly.bounds
-    h = h0 = contact.support_spacing_m
+    h = contact.support_spacing_m
     hull = np.asarray(poly.convex_hull.exterior.coords)[:-1]
     corners = []
     for v in hull:  # moved onto the inset footprint and a hair towards the CoM
         q = np.asarray(shapely.ops.nearest_points(inner, Point(v))[0].coords[0])
         q = q + (c - q) * 1e-6
         corners.append((float(q[0]), float(q[1])))
-    if contact.support_layout == "grid":  # the previous layout, kept for comparisons
-        gx, gy = np.meshgrid(np.arange(x0 + h0 / 2, x1, h0), np.arange(y0 + h0 / 2, y1, h0))
-        g = np.stack([gx.ravel(), gy.ravel()], axis=1)
-        g = g[shapely.contains_xy(inner, g[:, 0], g[:, 1])]
-        return [(float(x), float(y)) for x, y in g] + corners, []
-    if contact.support_layout == "rings":
-        return _ring_core(inner, c, contact), corners
     core: list[tuple[float, float]] = []
     while True:
         n = int(math.ceil(max(x1 - x0, y1 - y0) / h)) + 1
@@ -389,40 +364,7 @@ def _support_points(
         known = np.asarray(core).reshape(-1, 2)
         if all(known.size == 0 or np.min(np.hypot(*(known - q).T)) > 1e-6 for q in pair):
             core.extend((float(q[0]), float(q[1])) for q in pair)
-    # rim: the hull corners (the tipping edges) and a grid over the rest of the footprint, so
-    # that a tilt towards any side meets a support within one spacing of the core
-    gx, gy = np.meshgrid(np.arange(x0 + h0 / 2, x1, h0), np.arange(y0 + h0 / 2, y1, h0))
-    g = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    g = g[shapely.contains_xy(inner, g[:, 0], g[:, 1])]
-    known = np.asarray(core)
-    far = np.min(np.hypot(*(g[:, None, :] - known[None, :, :]).transpose(2, 0, 1)), axis=1)
-    rim = corners + (
-        [(float(x), float(y)) for x, y in g[far > 0.5 * h0]] if contact.rim_grid else []
-    )
-    return core, rim
-
-
-def _ring_core(inner, c: np.ndarray, contact: MujocoContactSettings) -> list[tuple[float, float]]:
-    """Floor core as concentric rings about the CoM, inside the largest disc that fits.
-
-    Why (docs/physics_mujoco.md, "Root cause 3"): a point-symmetric core keeps the contact
-    centre on the CoM, but unless its second moments are isotropic a pitch moment tilts the
-    object off the push direction, the load moves off the push line and a through-CoM push
-    turns. A disc of rings is (nearly) symmetric about every line through the CoM. Its cost:
-    the load sits inside the inscribed disc, so turning resistance and support extent shrink.
-    """
-    from shapely.geometry import Point
-
-    radius = float(inner.exterior.distance(Point(c)))
-    h = contact.support_spacing_m
-    n_rings = max(1, int(math.ceil(radius / h - 1e-9)))
-    pts = [(float(c[0]), float(c[1]))]
-    for k in range(1, n_rings + 1):
-        r = radius * k / n_rings
-        n = max(contact.ring_min_points, 8 * int(math.ceil(2 * math.pi * r / h / 8)))
-        a = np.arange(n) * 2 * math.pi / n + (k % 2) * math.pi / n
-        pts += [(float(c[0] + r * math.cos(t)), float(c[1] + r * math.sin(t))) for t in a]
-    return pts
+    return core, corners  # rim: the hull corners (the tipping edges)
 
 
 def _geometry_key(scene: SceneSpec, contact: MujocoContactSettings) -> tuple:
@@ -522,7 +464,7 @@ class _CompiledScene:
         )  # fmt: skip
 
 
-class MujocoSimulator(Simulator):
+class MujocoSimulator(JumpsStillSteps, RunsChunks, Simulator):
     name = "mujoco"
     still_jumps = STILL_JUMPS  # still steps jumped, not stepped
 
@@ -540,8 +482,6 @@ class MujocoSimulator(Simulator):
             raise ValueError(f"renderer must be one of {RENDERER_CHOICES}")
         self.floor_friction = floor_friction
         self.renderer = renderer
-        # the compiled steps run several of the protocol's chunks in one call (`push_chunks`)
-        self.batches_chunks = floor_friction == "model"
         self._fric: FootprintFriction | None = None
         self._pushed = False
         self.contact = contact or DEFAULT_CONTACT
@@ -683,25 +623,25 @@ class MujocoSimulator(Simulator):
         d.qpos[self._px_qadr : self._px_qadr + 2] = xy
         d.qvel[self._px_vadr : self._px_vadr + 2] = vel_xy
 
-    def _pusher_xy(self) -> np.ndarray:
+    def pusher_xy(self) -> np.ndarray:
         return np.array(self.data.qpos[self._px_qadr : self._px_qadr + 2])
 
     def _warning_count(self) -> int:
         return int(self._warning_numbers[_UNSTABLE_WARNING_INDEX].sum())
 
     # --- protocol primitives (comexp.simulator.Simulator.push) ------------------------------
-    def _place_pusher(self, xy) -> None:
+    def place_pusher(self, xy) -> None:
         m, d = self._require()
         self._set_pusher((float(xy[0]), float(xy[1])), (0.0, 0.0))
         mujoco.mj_forward(m, d)
 
-    def _park_xy(self) -> tuple[float, float]:
+    def park_xy(self) -> tuple[float, float]:
         return _PARK_XY_M
 
-    def _engine_failure(self) -> PushStatus | None:
+    def engine_failure(self) -> PushStatus | None:
         return PushStatus.SIM_UNSTABLE if self._warning_count() > self._warnings0 else None
 
-    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+    def advance(self, targets: np.ndarray) -> tuple[bool, float]:
         """The pusher follows `targets`, one per step, kinematically: before every step (or run
         of steps) it is put exactly on the commanded path at the commanded velocity, and being
         heavy it coasts through the step at that velocity (the object's reaction changes it by
@@ -744,41 +684,44 @@ class MujocoSimulator(Simulator):
             if self.trace is not None:
                 self.trace.append(self.object_state())
             i = j
-        last = targets[-1] if n_all else self._pusher_xy()
+        last = targets[-1] if n_all else self.pusher_xy()
         self._set_pusher(
             (float(last[0]), float(last[1])),
             (float(vel[-1, 0]), float(vel[-1, 1])) if n_all else (0.0, 0.0),
         )
         return touched, _tilt_deg_of_cos(min_cos)
 
-    def _advance_chunks(
+    def runs_chunks(self) -> bool:
+        """Under the footprint model the compiled steps run several of the protocol's chunks
+        in one call (`push_chunks`); MuJoCo's own friction steps one chunk a call."""
+        return self.floor_friction == "model"
+
+    def advance_chunks(
         self, targets: np.ndarray, chunk: int, stop: ChunkStop
     ) -> list[tuple[bool, float, float]]:
-        """`_advance` chunk after chunk in one compiled call (`push_chunks`), stopping after
+        """`advance` chunk after chunk in one compiled call (`push_chunks`), stopping after
         the first chunk whose state `stop` names, or whose tilt is half way to the protocol's
         `tip_limit_deg` (an engine's object is never exactly flat), or that raised an unstable
-        warning (`_engine_failure`). The steps are those of `_advance` on each chunk: the
+        warning (`engine_failure`). The steps are those of `advance` on each chunk: the
         pusher put on its path before every step, on its last target after the call. A
-        chunk's tilt is the larger of `_advance`'s and its state's (`ObjectState.tilt_deg`,
+        chunk's tilt is the larger of `advance`'s and its state's (`ObjectState.tilt_deg`,
         which the protocol's check would add); the yaw as `object_state` reads it. A traced
         run (`trace`) goes one chunk at a time."""
         if self.trace is not None:
-            touched, tilt = self._advance(targets[:chunk])
+            touched, tilt = self.advance(targets[:chunk])
             return [(touched, tilt, self.object_state().pose.yaw_rad)]
         m, d = self._require()
         n = len(targets) // chunk
         targets = np.asarray(targets[: n * chunk], dtype=float)
-        starts, vels = self._pusher_path(targets)  # each chunk's as `_advance` makes it
-        rule = np.array(
-            (*stop.box, stop.rest_speed_m_s, stop.rest_spin_rad_s,
-             math.cos(math.radians(self.settings.tip_limit_deg / 2.0)))
-        )  # fmt: skip
+        starts, vels = self._pusher_path(targets)  # each chunk's as `advance` makes it
+        rule = stop.rule()
+        min_cos_tilt = math.cos(math.radians(self.settings.tip_limit_deg / 2.0))
         rest = np.ascontiguousarray(stop.rest_after[:n], dtype=np.bool_)
         args, record = self._loop_args(m, d, starts, vels)
         out = np.empty((n, 7))
         done = _push_chunks_call(
-            *args, chunk, rule, rest, self._warning_numbers, _UNSTABLE_WARNING_INDEX,
-            self._warnings0, out,
+            *args, chunk, rule, min_cos_tilt, rest, self._warning_numbers,
+            _UNSTABLE_WARNING_INDEX, self._warnings0, out,
         )  # fmt: skip
         self._keep_inputs(record[: done * chunk])
         self._pushed = bool(out[done - 1, 2])
@@ -791,10 +734,10 @@ class MujocoSimulator(Simulator):
             ran.append((bool(row[0]), tilt, yaw))
         return ran
 
-    def _jump_pusher(self, targets: np.ndarray) -> None:
-        """The pusher on its last target at its last step's velocity, as `_advance` leaves it
+    def jump_pusher(self, targets: np.ndarray) -> None:
+        """The pusher on its last target at its last step's velocity, as `advance` leaves it
         (`push_steps` puts it on its path before every step anyway)."""
-        prev = self._pusher_xy() if len(targets) < 2 else targets[-2]
+        prev = self.pusher_xy() if len(targets) < 2 else targets[-2]
         last, dt = targets[-1], self.settings.timestep_s
         vel = ((last[0] - prev[0]) / dt, (last[1] - prev[1]) / dt)
         self._set_pusher((float(last[0]), float(last[1])), (float(vel[0]), float(vel[1])))
@@ -815,7 +758,7 @@ class MujocoSimulator(Simulator):
     def _pusher_path(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where each step of `targets` starts (the pusher now, then each target before its
         own) and the velocity that reaches its target within the step."""
-        path = np.concatenate((self._pusher_xy()[None, :], targets))
+        path = np.concatenate((self.pusher_xy()[None, :], targets))
         return path[:-1], (path[1:] - path[:-1]) / self.settings.timestep_s
 
     def _loop_args(
@@ -852,7 +795,7 @@ class MujocoSimulator(Simulator):
     def render_depth(self) -> DepthImage:
         _, d = self._require()
         if self.renderer == "raycast":
-            return self._raycast_depth()
+            return self.raycast_depth()
         r = self._renderer()
         r.data.qpos[:] = d.qpos
         mujoco.mj_kinematics(r.model, r.data)
@@ -869,7 +812,7 @@ class MujocoSimulator(Simulator):
         the rest is fixed cost: scene update, read-back)."""
         _, d = self._require()
         if self.renderer == "raycast":
-            return self._raycast_tracking_depth()
+            return self.raycast_tracking_depth()
         scene = self._scene
         model = scene.camera.model()
         win = object_window_px(model, scene.obj.outline_m, scene.obj.height_m, self.object_state())

@@ -11,7 +11,7 @@ whether the pusher touches the object from a contact sensor (`PUSHER_SENSOR`).
 What is given up: the Python bindings turn MuJoCo's fatal errors (`mju_error`) into Python
 exceptions; called from here such an error ends the process, as MuJoCo's default handler
 does. `mj_step` raises none for these scenes; its warnings (a full contact buffer, a bad
-acceleration) are still counted after every chunk (`MujocoSimulator._engine_failure`).
+acceleration) are still counted after every chunk (`MujocoSimulator.engine_failure`).
 """
 
 from __future__ import annotations
@@ -28,11 +28,13 @@ from numba import njit, types
 from comexp.backends import floor_friction
 from comexp.backends.floor_friction import impulse_kernel
 from comexp.backends.numba_kernels import bind_library_functions, stamp_with_sources
+from comexp.sim import stop_rule
+from comexp.sim.stop_rule import chunk_stops
 
 
 def _libmujoco() -> str:
     """The libmujoco the Python bindings load (the wheel ships it beside them; Linux only:
-    comexp.experiment.platform)."""
+    the backend's `linux_only` in conf/backend/mujoco.yaml)."""
     if not sys.platform.startswith("linux"):
         msg = f"the compiled MuJoCo loop loads libmujoco.so: Linux only, not {sys.platform}"
         raise ImportError(msg)
@@ -142,9 +144,9 @@ def push_chunks(
     m_ptr, d_ptr, substeps, qpos, qvel, xipos, xfrc, sensordata, sensor_adr,
     obj_q, obj_v, pusher_q, pusher_v, body, com_local, starts, vels,
     geo, fs, normal, dxw, dyw, dt, pushed, record,
-    chunk, rule, rest_after, warnings, warning_index, warnings0, out,
+    chunk, rule, min_cos_tilt, rest_after, warnings, warning_index, warnings0, out,
 ):  # fmt: skip
-    """`push_steps` over each whole chunk of `chunk` rows in turn (the protocol's `_advance`
+    """`push_steps` over each whole chunk of `chunk` rows in turn (the protocol's `advance`
     calls, one compiled call), stopping after the first chunk whose state `chunk_stops`
     names (the rest rule after those `rest_after` marks). Per chunk run, `out` gets (touched,
     the least cosine of its tilt, touching after it, the object's quaternion after it).
@@ -164,45 +166,42 @@ def push_chunks(
         out[c, 2] = 1.0 if pushed else 0.0
         for k in range(4):
             out[c, 3 + k] = qpos[obj_q + 3 + k]
-        if chunk_stops(
-            qpos, qvel, obj_q, obj_v, min_cos, rule, rest_after[c], warnings, warning_index,
-            warnings0, rot,
+        if _stops(
+            qpos, qvel, obj_q, obj_v, min_cos, min_cos_tilt, rule, rest_after[c], warnings,
+            warning_index, warnings0, rot,
         ):  # fmt: skip
             return c + 1
     return n
 
 
 @njit(cache=True)
-def chunk_stops(
-    qpos, qvel, obj_q, obj_v, min_cos, rule, rest, warnings, warning_index, warnings0, rot
+def _stops(
+    qpos, qvel, obj_q, obj_v, min_cos, min_cos_tilt, rule, rest, warnings, warning_index,
+    warnings0, rot,
 ):  # fmt: skip
-    """`ChunkStop`'s rule on MuJoCo's state (`MujocoSimulator._advance_chunks`); `rule` =
-    (x_lo, x_hi, y_lo, y_hi, rest speed, rest spin, least cosine of the tilt): a coordinate
-    not finite, more of the engine's unstable warnings than `warnings0`
-    (`MujocoSimulator._engine_failure`), the chunk's tilt past the cosine's, the object
-    frame's origin outside the box, or (`rest`) the origin's |v_x| + |v_y| and the spin
-    about world z below the rest limits."""
+    """`ChunkStop`'s rule (`stop_rule.chunk_stops`) on MuJoCo's state: healthy is every
+    coordinate finite, no more of the engine's unstable warnings than `warnings0`
+    (`MujocoSimulator.engine_failure`) and the chunk's tilt within the cosine
+    `min_cos_tilt` (half way to the tip limit: an engine's object is never exactly flat);
+    the object frame's origin, its |v_x| + |v_y| and the spin about world z."""
+    healthy = True
     for i in range(7):
         if not math.isfinite(qpos[obj_q + i]):
-            return True
+            healthy = False
     for i in range(6):
         if not math.isfinite(qvel[obj_v + i]):
-            return True
+            healthy = False
     count = 0
     for k in warning_index:
         count += warnings[k]
-    if count > warnings0 or min_cos < rule[6]:
-        return True
-    x, y = qpos[obj_q], qpos[obj_q + 1]
-    if not (rule[0] <= x <= rule[1] and rule[2] <= y <= rule[3]):
-        return True
-    if not rest:
-        return False
+    if count > warnings0 or min_cos < min_cos_tilt:
+        healthy = False
     _mju_quat2mat(rot.ctypes.data, qpos.ctypes.data + 8 * (obj_q + 3))
     # the free joint's angular velocity is in the body frame: world z is the matrix's last row
     wz = rot[6] * qvel[obj_v + 3] + rot[7] * qvel[obj_v + 4] + rot[8] * qvel[obj_v + 5]
-    return abs(qvel[obj_v]) + abs(qvel[obj_v + 1]) < rule[4] and abs(wz) < rule[5]
+    speed = abs(qvel[obj_v]) + abs(qvel[obj_v + 1])
+    return chunk_stops(healthy, qpos[obj_q], qpos[obj_q + 1], rest, speed, wz, rule)
 
 
 # the chunk above compiles the friction kernel into its own machine code
-stamp_with_sources(globals(), floor_friction)
+stamp_with_sources(globals(), floor_friction, stop_rule)

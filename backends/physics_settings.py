@@ -1,11 +1,12 @@
-"""What fixes each built-in backend's results: its model revision, the engine that computes
-it and every setting that shapes it, importable without any engine.
+"""What fixes a backend's results: its model revision, the engine that computes it and every
+setting that shapes it (the built-in backends' importable without any engine), and the one
+identity made of them (`physics_identity`).
 
-The driver names an episode's physics (`comexp.experiment.registry.physics_identity`, part of
-every episode's key) from here, so expanding a grid or resuming a job loads no MuJoCo, pybullet
-or Numba (docs/performance.md, "Memory"). Each backend's module re-exports its own entry as
-`PHYSICS_VERSION`, `ENGINE_DISTRIBUTION` and `PHYSICS_SETTINGS`, the names a plug-in backend's
-module defines; `tests/test_physics_identity.py` checks the two agree.
+The driver names an episode's physics (`physics_identity`, part of every episode's key) from
+here, so expanding a grid or resuming a job loads no MuJoCo or pybullet (docs/performance.md,
+"Memory"). Each built-in backend's module re-exports its own entry as `PHYSICS_VERSION`,
+`ENGINE_DISTRIBUTION` and `PHYSICS_SETTINGS`, the names a plug-in backend's module defines;
+`tests/test_physics_identity.py` checks the two agree.
 
 **Bump a backend's version here when a change to its module changes results.** The settings
 enter the identity through their `repr`, which names the class, not this module.
@@ -13,8 +14,24 @@ enter the identity through their `repr`, which names the class, not this module.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import importlib
+from dataclasses import dataclass, fields
+from importlib import metadata
 from typing import Any, NamedTuple
+
+from comexp.sim.scene import SimSettings
+
+# How an engine gets the floor's friction (`backend.floor_friction`): "model" applies the shared
+# footprint model (backends/floor_friction.py) as a force each step, the engine's own
+# object-floor friction off; "native" is the engine's own contact friction (kept to show the
+# difference). planar is the model itself.
+FLOOR_FRICTION_CHOICES = ("model", "native")
+# How an engine makes its depth images (`camera.renderer`): "raycast" is the exact ray cast of
+# the prism at the engine's pose (`comexp.method.rendering.render_prism_depth`, planar's
+# camera; no pusher in the image, which the tracker masks anyway); "engine" is the engine's own
+# renderer (pybullet's tiny renderer, MuJoCo's GL on Mesa).
+RENDERER_CHOICES = ("raycast", "engine")
 
 
 class BackendPhysics(NamedTuple):
@@ -51,7 +68,7 @@ class SlowSteps:
 
 @dataclass(frozen=True)
 class StillJumps:
-    """The engines' still steps (`Simulator._steps_still`): while the object is at rest by the
+    """The engines' still steps (`Simulator.steps_still`): while the object is at rest by the
     settle rule and the pusher stays farther from its outline than each step is long plus
     `margin_m`, the engine is not stepped: time passes, the object's state is kept, the
     pusher moves on. An engine's resting object never stops exactly; stepped, it creeps at
@@ -96,11 +113,8 @@ class MujocoContactSettings:
     support_spacing_model_m: float = 0.02
     support_min_points_model: int = 4
     support_min_points: int = 8  # the grid spacing is halved until the core has this many
-    support_layout: str = "symmetric"  # "grid": uniform grid over the footprint (comparison)
     support_radius_m: float = 0.001
     rim_lift_m: float = 0.0005  # rim supports sit this high: they touch only when tilted
-    rim_frictionless: bool = False  # True: normal support only (see docs, open problems)
-    rim_grid: bool = False  # True: rim also on a grid over the rest of the footprint
     build_settle_s: float = 0.1
     substeps: int = 1  # physics steps per SimSettings.timestep_s (pusher command rate)
     pusher_mass_kg: float = 1.0e6
@@ -110,13 +124,29 @@ class MujocoContactSettings:
     # 53.2 deg by float rounding (planar 51.2; the same push at 8 yaws, mu 0.1, 40 cm/s)
     pusher_solref: tuple[float, float] | None = (0.005, 2.0)  # None: `solref`
     cone: str = "elliptic"
-    # experimental, off by default (measured in docs/physics_mujoco.md, "Root cause 3"):
-    floor_margin_m: float = 0.0  # > 0: core contacts active up to this gap (smooth hover)
-    ring_min_points: int = 16  # support_layout "rings": points on the smallest ring
-    pusher_sleeve_kg: float = 0.0  # > 0: pusher geom on a free vertical slide of this mass
     # depth renderers kept (one per object geometry, ~80 MB each): the grid runs each object's
     # episodes together, so a small cache loses nothing (docs/performance.md)
     max_renderers: int = 2
+
+    def __repr__(self) -> str:
+        """The dataclass's repr with the retired settings in their places, at the only values
+        they ever took in a stored study: the physics identity hashes this text, so that the
+        episodes stored before they were retired keep their keys (git keeps the code that
+        read them: the support layouts "grid" and "rings", a floor margin, a pusher sleeve, a
+        rim grid and a frictionless rim, each measured and not chosen)."""
+        parts = []
+        for f in fields(self):
+            parts.append(f"{f.name}={getattr(self, f.name)!r}")
+            parts += [f"{k}={v!r}" for k, v in _RETIRED_AFTER.get(f.name, ())]
+        return f"{type(self).__name__}({', '.join(parts)})"
+
+
+# retired MuJoCo contact settings, after the field they followed, at their only values
+_RETIRED_AFTER: dict[str, tuple[tuple[str, Any], ...]] = {
+    "support_min_points": (("support_layout", "symmetric"),),
+    "rim_lift_m": (("rim_frictionless", False), ("rim_grid", False)),
+    "cone": (("floor_margin_m", 0.0), ("ring_min_points", 16), ("pusher_sleeve_kg", 0.0)),
+}
 
 
 DEFAULT_CONTACT = MujocoContactSettings()
@@ -174,8 +204,48 @@ MUJOCO = BackendPhysics(
     "mujoco",
     (DEFAULT_CONTACT, FrictionSettings(), STILL_JUMPS),
 )
+# the built-in backends' modules (their `_target_`s' modules in conf/backend/*.yaml)
 BUILTIN_PHYSICS: dict[str, BackendPhysics] = {
-    "planar": PLANAR,
-    "pybullet": PYBULLET,
-    "mujoco": MUJOCO,
+    "comexp.backends.planar_sim": PLANAR,
+    "comexp.backends.pybullet_sim": PYBULLET,
+    "comexp.backends.mujoco_sim": MUJOCO,
 }
+
+
+def backend_physics(target: str) -> BackendPhysics:
+    """The physics of the backend whose simulator class is `target` (`module.Class`): a
+    built-in's from the table above, without importing its engine; a plug-in's from the
+    names its module defines. ValueError (one line) when the module lacks them."""
+    module_name = target.rpartition(".")[0]
+    if module_name in BUILTIN_PHYSICS:
+        return BUILTIN_PHYSICS[module_name]
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as e:
+        raise ValueError(f"cannot import {module_name!r}: {str(e).splitlines()[0]}") from None
+    missing = [a for a in ("PHYSICS_VERSION", "PHYSICS_SETTINGS") if not hasattr(module, a)]
+    if missing:
+        raise ValueError(
+            f"module {module_name!r} must define {', '.join(missing)} (the physics identity)"
+        )
+    engine = getattr(module, "ENGINE_DISTRIBUTION", None)
+    return BackendPhysics(module.PHYSICS_VERSION, engine, module.PHYSICS_SETTINGS)
+
+
+def physics_identity(
+    name: str, target: str, settings: SimSettings | None = None, options: dict | None = None
+) -> str:
+    """What determines an episode's physics on backend `name` (simulator class `target`), as
+    one short string: the backend's model revision (`PHYSICS_VERSION`, bumped by any change
+    that changes results), the engine's version, and a hash of the backend's settings, its
+    options and the push protocol's settings. It is part of every episode's identity
+    (`EpisodeSpec.physics`), so a database is never resumed across physics versions and no
+    report pools two of them."""
+    version, engine, physics_settings = backend_physics(target)
+    engine_v = metadata.version(engine) if engine else "none"
+    # the engine's own renderer is what every row had before `camera.renderer` existed: it is
+    # left out, so that those rows keep their identity
+    opts = {k: v for k, v in (options or {}).items() if (k, v) != ("renderer", "engine")}
+    text = repr((physics_settings, settings or SimSettings(), sorted(opts.items())))
+    digest = hashlib.sha256(text.encode()).hexdigest()[:10]
+    return f"{name}/{version}/{engine or 'numpy'}-{engine_v}/{digest}"

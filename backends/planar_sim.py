@@ -57,26 +57,22 @@ from comexp.backends.floor_friction import (
     COP_X,
     COP_Y,
     FootprintFriction,
-    FrictionSettings,
     free_solve_kernel,
     minimise_kernel,
     offsets_kernel,
     set_cop_kernel,
 )
 from comexp.backends.numba_kernels import DirectCall, stamp_with_sources
-from comexp.backends.physics_settings import PLANAR, SlowSteps
-from comexp.experiment import clear_steps as clear_steps_module
-from comexp.experiment.clear_steps import clear_steps, closest_on_polygon
-from comexp.experiment.interface import ChunkStop, Simulator
+from comexp.backends.physics_settings import PLANAR, FrictionSettings, SlowSteps
+from comexp.method.frames import DepthImage
 from comexp.method.rendering import render_prism_depth, render_prism_window_depth
-from comexp.method.scene import (
-    GRAVITY_M_S2,
-    DepthImage,
-    ObjectSpec,
-    ObjectState,
-    SceneSpec,
-    SimSettings,
-)
+from comexp.sim import clear_steps as clear_steps_module
+from comexp.sim import stop_rule as stop_rule_module
+from comexp.sim.clear_steps import clear_steps, closest_on_polygon
+from comexp.sim.protocol import ChunkStop, RunsChunks, SkipsStillSteps
+from comexp.sim.scene import GRAVITY_M_S2, ObjectSpec, ObjectState, SceneSpec, SimSettings
+from comexp.sim.simulator import Simulator
+from comexp.sim.stop_rule import chunk_stops
 
 _PARK_XY_M = (0.0, 0.5)  # outside the floor and the camera's view
 
@@ -380,7 +376,7 @@ def _run_chunks(
     geo, fs, normal, dxw, dyw, pg, ms, q_start, targets, chunk, dt, mu_p, trace, group, v_slow,
     stop, rest_after, out,
 ):  # fmt: skip
-    """`_run` over each whole chunk of `targets` in turn (the protocol's `_advance` calls,
+    """`_run` over each whole chunk of `targets` in turn (the protocol's `advance` calls,
     one compiled call), stopping after the first chunk whose state `_stops` names (the rest
     rule after those `rest_after` marks); per chunk run, `out` gets whether it pushed, its
     largest pitch (rad) and the yaw. Returns how many chunks ran."""
@@ -399,23 +395,21 @@ def _run_chunks(
 
 @njit(cache=True)
 def _stops(pg, ms, stop, rest):
-    """`ChunkStop`'s rule on the model state; `stop` = (x_lo, x_hi, y_lo, y_hi, rest speed,
-    rest spin): not finite, not flat, the object frame's origin outside the box, or (`rest`)
-    the origin's |v_x| + |v_y| and |omega| below the rest limits."""
+    """`ChunkStop`'s rule (`stop_rule.chunk_stops`, `stop` its `rule`) on the model state:
+    healthy is finite and flat on the floor; the object frame's origin and its |v_x| + |v_y|,
+    and the spin."""
+    healthy = True
     for i in range(XI_W + 1):
         if not math.isfinite(ms[i]):
-            return True
+            healthy = False
     if ms[PITCH] != 0.0 or ms[PITCH_W] != 0.0 or ms[OVER] != 0.0:
-        return True
+        healthy = False
     c, s = math.cos(ms[YAW]), math.sin(ms[YAW])
     r0 = c * pg.com[0] - s * pg.com[1]  # origin -> CoM
     r1 = s * pg.com[0] + c * pg.com[1]
-    ox, oy = ms[G_X] - r0, ms[G_Y] - r1
-    if not (stop[0] <= ox <= stop[1] and stop[2] <= oy <= stop[3]):
-        return True
     w = ms[XI_W]
     v = abs(ms[XI_X] + w * r1) + abs(ms[XI_Y] - w * r0)
-    return rest and v < stop[4] and abs(w) < stop[5]
+    return chunk_stops(healthy, ms[G_X] - r0, ms[G_Y] - r1, rest, v, w, stop)
 
 
 @njit(cache=True)
@@ -431,9 +425,9 @@ def _pitch_rate_world(pg, ms):
 
 
 # the steps above compile the friction kernels into their own machine code
-stamp_with_sources(globals(), floor_friction, clear_steps_module)
+stamp_with_sources(globals(), floor_friction, clear_steps_module, stop_rule_module)
 _run_call = DirectCall(_run)  # every chunk of the protocol's steps, from Python
-_run_chunks_call = DirectCall(_run_chunks)  # chunks of them (`_advance_chunks`)
+_run_chunks_call = DirectCall(_run_chunks)  # chunks of them (`advance_chunks`)
 
 
 class PlanarModel:
@@ -574,7 +568,7 @@ class PlanarModel:
 
 
 _NO_TRACE = np.zeros((0, TRACE_COLS))
-# clearance beyond a step's length for `_steps_still` (m): 10x the step's own contact reach
+# clearance beyond a step's length for `steps_still` (m): 10x the step's own contact reach
 _STILL_MARGIN_M = 1e-4
 
 
@@ -625,11 +619,10 @@ def _same_physics(a: SceneSpec, b: SceneSpec) -> bool:
     )
 
 
-class PlanarSimulator(Simulator):
+class PlanarSimulator(SkipsStillSteps, RunsChunks, Simulator):
     """`backend=planar`: the reference model behind the shared simulator interface."""
 
     name = "planar"
-    batches_chunks = True  # `_advance_chunks`
     # the protocol's chunk of 10 steps (`Simulator.check_every_steps`): two slow steps
 
     def __init__(
@@ -702,13 +695,13 @@ class PlanarSimulator(Simulator):
         return render_prism_window_depth(self._camera, m.outline, m.obj.height_m, pose)
 
     # --- protocol primitives ---------------------------------------------------------------
-    def _place_pusher(self, xy) -> None:
+    def place_pusher(self, xy) -> None:
         self._q = np.asarray(xy, dtype=float).copy()
 
-    def _pusher_xy(self) -> np.ndarray:
+    def pusher_xy(self) -> np.ndarray:
         return self._q.copy()
 
-    def _steps_still(self, targets: np.ndarray) -> int:
+    def steps_still(self, targets: np.ndarray) -> int:
         """The leading steps in which the pusher surely stays clear of an object that is
         exactly at rest: friction then holds it exactly (no creep), so nothing moves. A step
         is clear when the pusher's end position is farther from the outline than the step is
@@ -721,7 +714,7 @@ class PlanarSimulator(Simulator):
         q0x, q0y = float(self._q[0]), float(self._q[1])
         return clear_steps(q0x, q0y, pts, poly, float(m.radius), _STILL_MARGIN_M)
 
-    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+    def advance(self, targets: np.ndarray) -> tuple[bool, float]:
         m = self._require()
         dt = self.settings.timestep_s
         mu_p = self._scene.obj.mu_pusher
@@ -736,20 +729,20 @@ class PlanarSimulator(Simulator):
             self._q = targets[-1].copy()
         return touched, math.degrees(m.ms[PITCH_MAX])
 
-    def _advance_chunks(
+    def advance_chunks(
         self, targets: np.ndarray, chunk: int, stop: ChunkStop
     ) -> list[tuple[bool, float, float]]:
-        """`_advance` chunk after chunk in one compiled call (`PlanarModel.run_chunks`). The
+        """`advance` chunk after chunk in one compiled call (`PlanarModel.run_chunks`). The
         pusher is kinematic (on its target after every step) and the model reports no
         failures of its own. A traced run (`trace`) goes one chunk at a time."""
         if self.trace is not None:
-            touched, tilt = self._advance(targets[:chunk])
+            touched, tilt = self.advance(targets[:chunk])
             return [(touched, tilt, self.object_state().pose.yaw_rad)]
         m = self._require()
         targets = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
         n = len(targets) // chunk
         out = np.empty((n, 3))
-        rule = np.array([*stop.box, stop.rest_speed_m_s, stop.rest_spin_rad_s])
+        rule = stop.rule()
         mu_p = self._scene.obj.mu_pusher
         dt = self.settings.timestep_s
         rest = np.ascontiguousarray(stop.rest_after[:n], dtype=np.bool_)
@@ -769,4 +762,4 @@ class PlanarSimulator(Simulator):
 # revision there when a change here changes results.
 PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = PLANAR
 
-__all__ = ["PlanarModel", "PlanarSimulator", "SlowSteps"]
+__all__ = ["PlanarModel", "PlanarSimulator"]

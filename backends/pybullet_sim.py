@@ -39,28 +39,28 @@ import numpy as np
 from comexp.backends.floor_friction import FootprintFriction
 from comexp.backends.numba_kernels import DirectCall
 from comexp.backends.physics_settings import (
+    FLOOR_FRICTION_CHOICES,
     PYBULLET,
     PYBULLET_PUSHER_AXLE_INERTIA_M2,
     PYBULLET_PUSHER_MASS_KG,
     PYBULLET_SOLVER_ITERATIONS,
+    RENDERER_CHOICES,
     STILL_JUMPS,
 )
-from comexp.experiment.contact import pusher_contact_height_m
-from comexp.experiment.interface import PARK_XY_M, Simulator
-from comexp.experiment.registry import FLOOR_FRICTION_CHOICES, RENDERER_CHOICES
-from comexp.experiment.view import crop_camera, object_window_px
-from comexp.method.scene import (
+from comexp.method.frames import CameraSpec, DepthImage, Pose2D
+from comexp.sim.contact import pusher_contact_height_m
+from comexp.sim.protocol import JumpsStillSteps
+from comexp.sim.scene import (
     GRAVITY_M_S2,
-    CameraSpec,
-    DepthImage,
     FloorSpec,
     ObjectSpec,
     ObjectState,
-    Pose2D,
     SceneSpec,
     SimSettings,
     tilt_deg,
 )
+from comexp.sim.simulator import PARK_XY_M, Simulator
+from comexp.sim.view import crop_camera, object_window_px
 
 
 def _import_pybullet_quietly():
@@ -208,7 +208,7 @@ def _window_projection(
 PHYSICS_VERSION, ENGINE_DISTRIBUTION, PHYSICS_SETTINGS = PYBULLET
 
 
-class PybulletSimulator(Simulator):
+class PybulletSimulator(JumpsStillSteps, Simulator):
     """pybullet implementation of the simulator interface (see the module docstring)."""
 
     name = "pybullet"
@@ -485,7 +485,7 @@ class PybulletSimulator(Simulator):
         q = pb.getQuaternionFromEuler([0.0, 0.0, yaw])
         pb.resetBasePositionAndOrientation(self._pusher, pos, q, physicsClientId=c)
 
-    def _pusher_xy(self) -> np.ndarray:
+    def pusher_xy(self) -> np.ndarray:
         pos, _ = pb.getBasePositionAndOrientation(self._pusher, physicsClientId=self._cid)
         return np.array(pos[:2])
 
@@ -521,7 +521,7 @@ class PybulletSimulator(Simulator):
     def render_depth(self) -> DepthImage:
         scene = self._require_scene()
         if self.renderer == "raycast":
-            return self._raycast_depth()
+            return self.raycast_depth()
         cam = scene.camera
         _, _, _, depth_buf, _ = pb.getCameraImage(
             cam.width_px,
@@ -544,7 +544,7 @@ class PybulletSimulator(Simulator):
         needs the object only."""
         scene = self._require_scene()
         if self.renderer == "raycast":
-            return self._raycast_tracking_depth()
+            return self.raycast_tracking_depth()
         cam = scene.camera
         model = cam.model()
         win = object_window_px(model, scene.obj.outline_m, scene.obj.height_m, self.object_state())
@@ -578,10 +578,10 @@ class PybulletSimulator(Simulator):
         pb.resetBaseVelocity(self._object, v_com.tolist(), w.tolist(), physicsClientId=self._cid)
 
     # --- protocol primitives (comexp.simulator.Simulator.push) ------------------------------
-    def _place_pusher(self, xy) -> None:
+    def place_pusher(self, xy) -> None:
         self._teleport_pusher(xy)
 
-    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
+    def advance(self, targets: np.ndarray) -> tuple[bool, float]:
         """The steps of `_step_once`, one per target: with `floor_friction=model` and no
         `trace`, a whole chunk in one compiled call (`pybullet_steps.push_steps`: the same
         Bullet commands with the same numbers, the same bits), else from Python."""
@@ -633,7 +633,7 @@ class PybulletSimulator(Simulator):
             f.inputs.extend((x, y, w, yaw, bool(p)) for x, y, w, yaw, p in record.tolist())
         return bool(touched)
 
-    def _jump_pusher(self, targets: np.ndarray) -> None:
+    def jump_pusher(self, targets: np.ndarray) -> None:
         """The pusher on its last target at its height, at rest, its axle as it was: the next
         `_step_once` sets the velocity that reaches its next target."""
         c = self._cid

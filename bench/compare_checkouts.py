@@ -4,9 +4,11 @@
     .venv/bin/python bench/compare_checkouts.py --old /tmp/old --backend planar --speed 4 \\
         --floor aniso --episodes 24 [--rounds 2]
 
-Each round runs the same strided slice of the job's episodes (`episode_profile.strided`, every
-object and condition) in a fresh process of each checkout's own venv, old then new, one
-worker in process, tracking on as the job has it. CPU time (`time.process_time`, the
+Each round runs the same strided slice of the job's episodes (`strided` of the checkout's own
+bench helpers, every object and condition) in a fresh process of each checkout's own venv,
+old then new, one worker in process, tracking on as the job has it. The other checkout may
+be of an older layout (before bench/common.py and today's module names): the child program
+tries today's names first, then the older ones (`_CHILD`). CPU time (`time.process_time`, the
 process's own: robust to other load on a shared machine) is summed over the episodes after a
 warm-up episode per object (Numba's cache, MuJoCo's renderers). The ratio old / new of each
 round is printed, and the episodes' results (estimate, status, every push's measured and true
@@ -32,44 +34,87 @@ import numpy as np
 # checkout lacks: OpenCV reads this variable when it loads)
 WORKER_THREADS = {"OMP_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1"}
 
-# Runs inside a checkout's venv, with that checkout's bench/ on the path.
+# The child program: runs in a checkout's own venv as a file of its own (`run_child`), that
+# checkout's bench/ on its PYTHONPATH, so that each checkout's own helpers choose and run its
+# episodes. It copes with either layout, trying today's names first: bench/common.py, then an
+# older checkout's bench/episode_profile.py (before bench/common.py); the episode loop in
+# comexp.episode.loop, then comexp.experiment.episode, then comexp.episode; make_simulator in
+# comexp.experiment.config, then comexp.experiment.simulator, then comexp.simulator.
 _CHILD = r"""
-import json, sys, time
-sys.path.insert(0, "bench")
-from episode_profile import engine_stdout_silenced, job_backend_options, job_specs, strided
-from comexp.experiment.episode import run_episode
-from comexp.experiment.simulator import make_simulator
-backend, floor, out = sys.argv[1], sys.argv[2], sys.argv[5]
-speed, n, extra = float(sys.argv[3]), int(sys.argv[4]), sys.argv[6:]
-specs = strided(job_specs(backend, floor, speed, extra), n)
-sim = make_simulator(backend, **job_backend_options(backend, floor, speed, extra))
-rows = []
-with engine_stdout_silenced(True):
-    first = {}
-    for s in specs:
-        first.setdefault(s.object, s)
-    for s in first.values():
-        run_episode(s, sim)
-    cpu = time.process_time()
-    for s in specs:
-        r = run_episode(s, sim)
-        rows.append({
-            "status": r.status, "error_cm": r.error_cm, "est": r.est_com_cm,
-            "pushes": [[p.rotation_deg, p.rotation_true_deg] for p in r.pushes],
-        })
-    cpu = time.process_time() - cpu
-sim.close()
-json.dump({"cpu_s": cpu, "rows": rows}, open(out, "w"))
+import importlib, json, sys, time
+
+
+def first(*names):
+    # the first `module:attr` of `names` that imports; ImportError naming every failure
+    failed = []
+    for name in names:
+        module, _, attr = name.partition(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as e:
+            failed.append(f"{name}: {type(e).__name__}: {e}")
+    raise ImportError("none of these imports:\n  " + "\n  ".join(failed))
+
+
+def helper(name):
+    # the checkout's own bench helper: bench/common.py, or bench/episode_profile.py before it
+    return first(f"common:{name}", f"episode_profile:{name}")
+
+
+def main(backend, floor, speed, n, out, extra):
+    silenced, options, job_specs, strided = (
+        helper(h) for h in ("engine_stdout_silenced", "job_backend_options", "job_specs", "strided")
+    )
+    run_episode = first(
+        "comexp.episode.loop:run_episode",
+        "comexp.experiment.episode:run_episode",
+        "comexp.episode:run_episode",
+    )
+    make_simulator = first(
+        "comexp.experiment.config:make_simulator",
+        "comexp.experiment.simulator:make_simulator",
+        "comexp.simulator:make_simulator",
+    )
+    specs = strided(job_specs(backend, floor, speed, extra), n)
+    sim = make_simulator(backend, **options(backend, floor, speed, extra))
+    rows = []
+    with silenced(True):
+        first_of_object = {}
+        for s in specs:
+            first_of_object.setdefault(s.object, s)
+        for s in first_of_object.values():
+            run_episode(s, sim)
+        cpu = time.process_time()
+        for s in specs:
+            r = run_episode(s, sim)
+            rows.append({
+                "status": r.status, "error_cm": r.error_cm, "est": r.est_com_cm,
+                "pushes": [[p.rotation_deg, p.rotation_true_deg] for p in r.pushes],
+            })
+        cpu = time.process_time() - cpu
+    sim.close()
+    with open(out, "w") as f:
+        json.dump({"cpu_s": cpu, "rows": rows}, f)
+
+
+if __name__ == "__main__":
+    a = sys.argv
+    main(a[1], a[2], float(a[3]), int(a[4]), a[5], a[6:])
 """
 
 
 def run_child(tree: Path, args: argparse.Namespace, extra: list[str]) -> dict:
-    with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as f:
-        out = f.name
-    cmd = [str(tree / ".venv/bin/python"), "-c", _CHILD, args.backend, args.floor,
-           str(args.speed), str(args.episodes), out, *extra]  # fmt: skip
-    subprocess.run(cmd, cwd=tree, check=True, env={**os.environ, **WORKER_THREADS})
-    return json.loads(Path(out).read_text())
+    """The child program on checkout `tree`, in its venv, from a temp dir of its own: the
+    checkout's bench/ is on the child's PYTHONPATH, nothing is written into the checkout."""
+    with tempfile.TemporaryDirectory(prefix="comexp-compare-") as tmp:
+        child, out = Path(tmp) / "compare_child.py", Path(tmp) / "out.json"
+        child.write_text(_CHILD)
+        cmd = [str(tree / ".venv/bin/python"), str(child), args.backend, args.floor,
+               str(args.speed), str(args.episodes), str(out), *extra]  # fmt: skip
+        paths = [str(tree / "bench"), os.environ.get("PYTHONPATH", "")]
+        env = {**os.environ, **WORKER_THREADS, "PYTHONPATH": os.pathsep.join(p for p in paths if p)}
+        subprocess.run(cmd, cwd=tree, check=True, env=env)
+        return json.loads(out.read_text())
 
 
 def tracking_error(rows: list[dict]) -> np.ndarray:

@@ -4,11 +4,12 @@
         [--floor-friction model|native]
     .venv/bin/python bench/engine_agreement.py --tipping [--d-cm 1.3 1.1 1.0 0.9 0.7 0.5 0.3]
 
-Pushes are drawn from the grid of both floors and both speeds (`job_specs` of
-bench/episode_profile.py, a strided slice holding every object and condition): for each
-episode, the scene is built as `run_episode` builds it (object, CoM, Izz, frictions, start
-yaw), the contact is Algorithm 1's first choice on the planar backend's first image, and that
-same world-frame push (start, direction, travel, speed) runs on every backend. Printed per
+Pushes are drawn from the grid of both floors and both speeds (`common.job_specs`, a strided
+slice holding every object and condition): for each episode, the scene is built as
+`run_episode` builds it (object, CoM, Izz, frictions, start yaw), the contact is the
+estimator's first choice (Algorithm 1, `make_estimator` as the episode makes it) on the planar
+backend's first image, and that same world-frame push (start, direction, travel, speed) runs
+on every backend (`comexp.sim.protocol.push`). Printed per
 engine: the median |rotation / planar rotation - 1| over pushes where planar turns more than
 1 deg, the share of those with the same sign, the largest disagreements, and the cost per push.
 Targets (issue "pybullet and MuJoCo pass the physics contract"): median <= 10%, same sign
@@ -24,22 +25,20 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import statistics
-import sys
 import time
 from dataclasses import replace
 
-sys.path.insert(0, os.path.dirname(__file__))
+from common import job_specs, strided
 
-from episode_profile import job_specs, strided  # noqa: E402
-
-from comexp.experiment.episode import build_scene  # noqa: E402
-from comexp.experiment.simulator import contact_push, make_simulator  # noqa: E402
-from comexp.method.estimator import ComEstimator  # noqa: E402
-from comexp.method.geometry import box_object  # noqa: E402
-from comexp.method.perception import perceive_first  # noqa: E402
-from comexp.method.scene import FloorSpec, SceneSpec, SimSettings  # noqa: E402
+from comexp.episode.task import build_scene
+from comexp.experiment.config import make_simulator
+from comexp.method.estimators import make_estimator
+from comexp.method.observation import perceive_first
+from comexp.sim.bodies import box_object
+from comexp.sim.contact import contact_push
+from comexp.sim.protocol import push
+from comexp.sim.scene import FloorSpec, SceneSpec, SimSettings
 
 
 def first_push(planar, spec):
@@ -47,7 +46,7 @@ def first_push(planar, spec):
     scene = build_scene(spec)
     planar.build(scene)
     perc, _ = perceive_first(planar.render_depth(), spec.estimator.contact_spacing_px)
-    est = ComEstimator(
+    est = make_estimator(
         perc.region_m,
         perc.contacts_m,
         perc.contact_normals,
@@ -76,7 +75,7 @@ def tipping_outcome(backend: str, d_m: float, speed_m_s: float) -> str:
     sim = make_simulator(backend, replace(SimSettings(), tip_limit_deg=89.0))
     try:
         sim.build(SceneSpec(FloorSpec(1.0, 1.0), box_object(0.03, 0.03, 0.02, (0.015 - d_m, 0))))
-        out = sim.push(contact_push((-0.015, 0.0), (1.0, 0.0), 0.03, speed_m_s, 0.005))
+        out = push(sim, contact_push((-0.015, 0.0), (1.0, 0.0), 0.03, speed_m_s, 0.005))
         for _ in range(200):
             sim.step(0.005)
         over = sim.object_state().tilt_deg > 45.0 or out.status.value == "tipped"
@@ -125,7 +124,7 @@ def main() -> None:
         for name, sim in [("planar", planar), *engines.items()]:
             sim.build(scene)
             t0 = time.perf_counter()
-            out = sim.push(cmd)
+            out = push(sim, cmd)
             cost[name] += time.perf_counter() - t0
             row[name] = out.rotation_deg if out.ok else float("nan")
             row[name + "_status"] = out.status.value

@@ -10,7 +10,8 @@ share pages (libraries, the object store), PSS from smaps_rollup, whose sum over
 the real footprint. VmHWM (the kernel's own peak RSS per process, between samples too) is read
 at the end. Worker RSS right after start-up vs at the end shows growth over a long job.
 
-The /proc helpers here are shared with bench/scaling.py (CPU time per process).
+The /proc readings (`descendants`, `memory_kb`, `proc_name`) are bench/common.py's, shared
+with bench/scaling.py.
 """
 
 from __future__ import annotations
@@ -29,88 +30,7 @@ from typing import Any
 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
-CLK_TCK = os.sysconf("SC_CLK_TCK")
-
-
-# --- /proc helpers ---------------------------------------------------------------------------
-
-
-def _read(path: str) -> str | None:
-    try:
-        with open(path) as f:
-            return f.read()
-    except OSError:  # the process ended between listing and reading
-        return None
-
-
-def _stat_fields(pid: int) -> list[str] | None:
-    """Fields of /proc/pid/stat after the command name (which may contain spaces)."""
-    text = _read(f"/proc/{pid}/stat")
-    if text is None:
-        return None
-    return text[text.rfind(")") + 2 :].split()
-
-
-def descendants(root: int) -> list[int]:
-    """root and every process below it (Ray's gcs_server, raylet, workers, agents)."""
-    children: dict[int, list[int]] = collections.defaultdict(list)
-    for name in os.listdir("/proc"):
-        if name.isdigit():
-            f = _stat_fields(int(name))
-            if f is not None:
-                children[int(f[1])].append(int(name))  # f[1] = ppid
-    out, todo = [], [root]
-    while todo:
-        pid = todo.pop()
-        out.append(pid)
-        todo.extend(children.get(pid, ()))
-    return out
-
-
-def cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time of one process so far."""
-    f = _stat_fields(pid)
-    if f is None:
-        return None
-    return (int(f[11]) + int(f[12])) / CLK_TCK  # utime, stime
-
-
-def proc_name(pid: int) -> str:
-    """A readable name: Ray sets actor processes' titles to ray::<Class>..., infrastructure
-    binaries keep their names, Python agents are named by their script."""
-    cmd = _read(f"/proc/{pid}/cmdline") or ""
-    parts = [p for p in cmd.split("\0") if p]
-    if not parts:
-        return (_read(f"/proc/{pid}/comm") or "?").strip()
-    first = parts[0]
-    if first.startswith("ray::"):  # ray::EpisodeWorker.run_batch -> ray::EpisodeWorker
-        return first.split()[0].split(".")[0]
-    base = os.path.basename(first)
-    if base.startswith("python"):
-        script = next((p for p in parts[1:] if p.endswith(".py")), None)
-        if script is None and "-m" in parts[1:-1]:  # python -m ray.scripts.scripts start ...
-            return " ".join(parts[parts.index("-m") + 1 :][:2])
-        return os.path.basename(script) if script else base
-    return base
-
-
-def memory_kb(pid: int) -> dict[str, int] | None:
-    """VmRSS, VmHWM (peak RSS) and PSS of one process, in kB."""
-    status = _read(f"/proc/{pid}/status")
-    if status is None:
-        return None
-    out = {"rss": 0, "hwm": 0, "pss": 0}
-    for line in status.splitlines():
-        if line.startswith("VmRSS:"):
-            out["rss"] = int(line.split()[1])
-        elif line.startswith("VmHWM:"):
-            out["hwm"] = int(line.split()[1])
-    rollup = _read(f"/proc/{pid}/smaps_rollup") or ""
-    for line in rollup.splitlines():
-        if line.startswith("Pss:"):
-            out["pss"] = int(line.split()[1])
-            break
-    return out
+from common import descendants, job_simulator, job_specs, memory_kb, proc_name, strided
 
 
 @dataclass
@@ -181,8 +101,6 @@ def _mb(kb: int) -> str:
 def run_job(
     backend: str, floor: str, speed: float, n: int | None, workers: int, interval_s: float
 ) -> dict[str, Any]:
-    from episode_profile import job_backend_options, job_specs, strided
-
     from comexp.results.store import ResultsDB
     from comexp.workers.driver import run_and_store
     from comexp.workers.kernel_cache import warm_kernel_cache
@@ -198,12 +116,10 @@ def run_job(
         db = ResultsDB(os.path.join(tmp, "mem.db"))
         try:
             sweep = db.start_sweep(command_line="bench/memory.py")
-            options = job_backend_options(backend, floor, speed)
+            simulator = job_simulator(backend, floor, speed)  # the job's physics
             # as `comexp` does: the kernels in a child while Ray starts
-            warm_kernel_cache(
-                backend, specs[0], options, meanwhile=lambda: ensure_ray(None, workers)
-            )
-            pool = EpisodePool(backend, workers, backend_options=options)
+            warm_kernel_cache(simulator, specs[0], meanwhile=lambda: ensure_ray(None, workers))
+            pool = EpisodePool(simulator, workers)
             with pool:
                 worker_pids = [
                     ray_get(s.actor.ready.remote())["pid"]

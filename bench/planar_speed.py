@@ -10,6 +10,9 @@ mu 0.1, 1 and anisotropic (0.1, 1) x lever arms 0, 5 mm, 1 cm x 4 and 40 cm/s, a
 push into the object's -x side (mu_pusher 0.5). With `--baseline DIR` (the two modules of
 another version) every push runs with both, interleaved on the same machine state: the
 wall-time ratio and the largest differences in rotation (deg) and final pose are printed.
+The other version is loaded beside this one under names of its own, nothing swapped in;
+it must speak today's simulator interface (`comexp.sim`): an older checkout as a whole is
+bench/compare_checkouts.py's to compare.
 
 `--self-noise` instead runs each push twice on one version (the baseline if given), the
 second time with the object's start moved by 1e-15 m: the model's own sensitivity to
@@ -41,20 +44,21 @@ mu 0.1 and 1) at the default resolution, with slow steps off, 100 and 1600 sampl
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from common import load_module
 
-from comexp.backends.floor_friction import FrictionSettings
-from comexp.backends.planar_sim import PlanarSimulator, SlowSteps
+from comexp.backends.physics_settings import FrictionSettings, SlowSteps
+from comexp.backends.planar_sim import PlanarSimulator
 from comexp.experiment.objects import com_point, load_objects
-from comexp.experiment.simulator import contact_push
-from comexp.method.geometry import box_object
-from comexp.method.scene import FloorSpec, SceneSpec, SimSettings
+from comexp.sim.bodies import box_object
+from comexp.sim.contact import contact_push
+from comexp.sim.protocol import push
+from comexp.sim.scene import FloorSpec, SceneSpec, SimSettings
 
 OBJECTS = ("rect_8x5", "l_shape", "triangle_right_11x7")
 FLOORS = ((0.1, 0.1), (1.0, 1.0), (0.1, 1.0))
@@ -80,27 +84,25 @@ def cases() -> list[tuple[str, SceneSpec, object]]:
 
 
 def load_baseline(directory: Path) -> type:
-    """PlanarSimulator of the version in `directory` (its floor_friction.py beside it)."""
+    """PlanarSimulator of the version in `directory` (its floor_friction.py beside it),
+    loaded beside the package's modules under names of its own (`common.load_module`): its
+    planar_sim.py, copied as _planar_sim_baseline.py, imports that floor_friction.py."""
     ff_name = "planar_baseline_floor_friction"
-    spec = importlib.util.spec_from_file_location(ff_name, directory / "floor_friction.py")
-    ff = importlib.util.module_from_spec(spec)
-    sys.modules[ff_name] = ff
-    spec.loader.exec_module(ff)
+    load_module(ff_name, directory / "floor_friction.py")
     src = (directory / "planar_sim.py").read_text()
+    src = src.replace(
+        "from comexp.backends import floor_friction\n", f"import {ff_name} as floor_friction\n"
+    )
     path = directory / "_planar_sim_baseline.py"
     path.write_text(src.replace("comexp.backends.floor_friction", ff_name))
-    spec = importlib.util.spec_from_file_location("planar_baseline_sim", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["planar_baseline_sim"] = mod
-    spec.loader.exec_module(mod)
-    return mod.PlanarSimulator
+    return load_module("planar_baseline_sim", path).PlanarSimulator
 
 
 def run(sim_cls: type, scene: SceneSpec, cmd) -> tuple[float, object]:
     sim = sim_cls()
     sim.build(scene)
     t0 = time.perf_counter()
-    out = sim.push(cmd)
+    out = push(sim, cmd)
     return time.perf_counter() - t0, out
 
 
@@ -153,7 +155,7 @@ def convergence() -> None:
             for _, kw in CONVERGENCE_COLUMNS:
                 sim = PlanarSimulator(**kw)
                 sim.build(SceneSpec(FloorSpec(mu, mu), box))
-                rots.append(f"{sim.push(cmd).rotation_deg:.3f}")
+                rots.append(f"{push(sim, cmd).rotation_deg:.3f}")
             print(f"| {mu:.1f} | {speed * 100:g} | " + " | ".join(rots) + " |")
 
 
@@ -175,7 +177,7 @@ def resolutions(all_cases) -> None:
         for _, scene, cmd in all_cases:
             sim.build(scene)
             t0 = time.process_time()
-            rots.append(sim.push(cmd).rotation_deg)
+            rots.append(push(sim, cmd).rotation_deg)
             cpu += time.process_time() - t0
         rots = np.array(rots)
         base = base or (rots, cpu)
@@ -204,7 +206,7 @@ def passes(n_loop: int = 20000, baseline: Path | None = None) -> None:
 def _passes_of(ff, n_loop: int, label: str) -> None:
     from numba import njit
 
-    from comexp.method.scene import PusherSpec
+    from comexp.sim.scene import PusherSpec
 
     od = load_objects(["rect_8x5"])["rect_8x5"]
     spec = od.model(com_point(od, 0), izz_scale=1.0, mu_pusher=0.5)

@@ -37,10 +37,18 @@ from dataclasses import dataclass
 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
-from episode_profile import job_backend_options, job_specs, source_digest, strided
-from memory import CLK_TCK, cpu_seconds, descendants, proc_name
+from common import (
+    CLK_TCK,
+    cpu_seconds,
+    descendants,
+    job_simulator,
+    job_specs,
+    proc_name,
+    source_digest,
+    strided,
+)
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.episode.task import EpisodeResult, EpisodeSpec
 from comexp.results.identity import episode_key
 from comexp.results.store import ResultsDB
 
@@ -112,7 +120,7 @@ def run_once(
             db_time += time.perf_counter() - t0
             return n
 
-        pool = EpisodePool(backend, workers, backend_options=job_backend_options(backend))
+        pool = EpisodePool(job_simulator(backend), workers)  # the job's physics
         t0 = time.perf_counter()
         pool.start()
         pool_start = time.perf_counter() - t0
@@ -176,7 +184,7 @@ def setup_costs(backend: str, tmp: str, cpus: int = 2) -> dict[str, float]:
         t_ray.append(time.perf_counter() - t)
 
     t0 = time.perf_counter()  # as `comexp` does: the kernels in a child while Ray starts
-    warm_kernel_cache(backend, specs[0], job_backend_options(backend), meanwhile=start_ray)
+    warm_kernel_cache(job_simulator(backend), specs[0], meanwhile=start_ray)
     t_both = time.perf_counter() - t0
     return {
         "hydra_grid_s": t_grid,

@@ -6,30 +6,36 @@
 
 Issue 16 asks for an episode within 1.5x of the engine's own floor: its steps plus its
 renders, measured in the same run (issue 24: with the model's physics as well). This script
-measures, on one in-process worker and the job's own episodes (`episode_profile.strided`
-slice, vision and the default camera):
+measures, on one in-process worker and the job's own episodes (`common.strided` slice, the
+job's simulator, vision and the default camera), with a subclass of the backend's class that
+times and records its calls (`TimedRenders`, `RecordsFriction` and the backend's
+`PlanarSteps` / `PybulletSteps` / `MujocoSteps`) and the push protocol handed to
+`run_episode` as its `push` (`StepClock.push`, `EngineClock.push`): nothing of the package is
+patched.
 
-- **in-push cost per step**: `sim.push` time, minus the tracking frames rendered inside
-  it and the tracker's work on them (its `on_frame` / `frame_wanted` callbacks: perception,
-  counted with the rest outside physics), over the steps the engine took (an engine jumps
-  the still ones, `Simulator._steps_still`: `PushOutcome.steps` counts those too);
-- **the engine's step in pushes**: the engine's own step call alone, no Python of ours
-  around it, in the states the pushes drive it through (`EngineStepsInPushes`: pybullet's
-  compiled chunks, `push_steps`, timed one by one, the friction kernel's replay taken off:
-  Bullet's step with the C commands that drive it (from Python, without the compiled steps:
-  its `stepSimulation` calls); MuJoCo's chunks replayed from their saved states as
-  `mj_step(m, d, n)`; planar's compiled calls (`_run`, `_run_chunks`) timed one by one: its
-  friction solve is inside its step), in a second run of each episode right after its timed one
-  (builds are full resets, so it takes the same steps). Beside it, the same call on each
-  episode's built scene at rest (object resting, pusher parked): a pusher contact and a
-  sliding object make a step dearer, so the resting step alone understates the floor;
-- **the friction model's kernel**: every `FootprintFriction` input of that second run
-  recorded and replayed through the compiled kernel alone, called as the engines call it
-  (planar: none apart from its step);
+- **in-push cost per step**: the push's time (`comexp.sim.protocol.push`), minus the tracking
+  frames rendered inside it and the tracker's work on them (its `on_frame` / `frame_wanted`
+  callbacks: perception, counted with the rest outside physics), over the steps the engine
+  took (an engine jumps the still ones, `steps_still`: `PushOutcome.steps` counts those too);
+- **the engine's step in pushes**: the engine's own step call, in the states the pushes
+  drive it through, in a second run of each episode right after its timed one (builds are
+  full resets, so it takes the same steps): pybullet's compiled chunks (`_compiled_steps`,
+  `push_steps` and its few lines of argument handling) timed one by one, the friction
+  kernel's replay taken off (stepped from Python, without the compiled steps: each
+  `_step_once`, Bullet's step with the pusher command and the friction call around it);
+  MuJoCo's chunks replayed from their saved states as `mj_step(m, d, n)`; planar's compiled
+  calls (`advance`, `advance_chunks`) timed one by one: its friction solve is inside its
+  step. Beside it, the same call on each episode's built scene at rest (object resting,
+  pusher parked): a pusher contact and a sliding object make a step dearer, so the resting
+  step alone understates the floor;
+- **the friction model's kernel**: every `FootprintFriction` input of that run
+  (`FootprintFriction.inputs`; pybullet: in a third run, so that its timed chunks do not
+  hold the recording) replayed through the compiled kernel alone, called as the engines call
+  it (planar: none apart from its step);
 - the rest of the step, **our Python around the engine** (pusher command, state reads, force
   application, contact query, the protocol's checks): in-push minus engine minus kernel.
 
-Every time is CPU time (`time.process_time`; pybullet's per-call timer `time.thread_time`),
+Every time is CPU time (`time.process_time`; the engine's per-call timer `time.thread_time`),
 not wall time: these machines are shared, and a bench beside a study would otherwise count
 the study's turns as its own.
 
@@ -46,334 +52,368 @@ import os
 import statistics
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, nullcontext
 from typing import Any
 
 import numpy as np
-from episode_profile import (
+from common import (
+    bench_simulator,
     engine_stdout_silenced,
-    job_backend_options,
+    job_simulator,
     job_specs,
     source_digest,
     strided,
     use_one_cpu,
+    warm_up,
 )
 
 from comexp.backends import floor_friction as ff
 from comexp.backends.numba_kernels import DirectCall
-from comexp.experiment import episode as episode_mod
-from comexp.experiment.episode import EpisodeSpec, run_episode
-from comexp.experiment.simulator import Simulator, make_simulator
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeSpec, build_scene
+from comexp.sim.protocol import push
+from comexp.sim.simulator import Simulator
 
 
-class Timers:
-    """CPU time and calls of the wrapped methods, and the steps of the pushes. A push's
-    `on_frame` and `frame_wanted` callbacks (the tracker following the push: masking,
-    boundary, ICP) are timed as "track": they run inside the push but are perception."""
+class StepClock:
+    """CPU time and calls of the pushes (the push protocol, handed to `run_episode` as its
+    `push`), of the renders (`TimedRenders`) and of the tracker's work inside the pushes (the
+    push's `on_frame` / `frame_wanted` callbacks: masking, boundary, ICP; perception, timed
+    as "track"), and the pushes' steps. Times only while `active`."""
 
     def __init__(self) -> None:
         keys = ("push", "render", "frame", "track")
         self.s: dict[str, float] = dict.fromkeys(keys, 0.0)
         self.n: dict[str, int] = dict.fromkeys(keys, 0)
         self.steps = 0
-        self.active = True  # off: the wrapped methods run untimed
+        self.active = False
 
-    def _timed(self, fn: Any, key: str) -> Any:
-        def timed(*a: Any, **k: Any) -> Any:
-            if not self.active:
-                return fn(*a, **k)
-            t0 = time.process_time()
-            out = fn(*a, **k)
+    @contextmanager
+    def timing(self, key: str) -> Iterator[None]:
+        if not self.active:
+            yield
+            return
+        t0 = time.process_time()
+        try:
+            yield
+        finally:
             self.s[key] += time.process_time() - t0
             self.n[key] += 1
-            if key == "push":
-                self.steps += out.steps
-            return out
+
+    def _tracked(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*a: Any, **k: Any) -> Any:
+            t0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                self.s["track"] += time.process_time() - t0
+                self.n["track"] += 1
 
         return timed
 
-    def wrap(self, sim: Simulator, name: str, key: str) -> None:
-        timed = self._timed(getattr(sim, name), key)
-        if key != "push":
-            setattr(sim, name, timed)
-            return
-
-        def push(*a: Any, **k: Any) -> Any:
+    def push(self, sim: Simulator, cmd: Any, **kwargs: Any) -> Any:
+        """`run_episode`'s push: the protocol's, timed, its tracking callbacks timed apart."""
+        if self.active:
             for cb in ("on_frame", "frame_wanted"):
-                if self.active and k.get(cb) is not None:
-                    k[cb] = self._timed(k[cb], "track")
-            return timed(*a, **k)
+                if kwargs.get(cb) is not None:
+                    kwargs[cb] = self._tracked(kwargs[cb])
+        with self.timing("push"):
+            out = push(sim, cmd, **kwargs)
+        if self.active:
+            self.steps += out.steps
+        return out
 
-        setattr(sim, name, push)
+
+class EngineClock:
+    """The engine's own step calls, on the thread's CPU clock (its own cost, calibrated,
+    taken off each call), while a push of the engine pass is under way (`push`, handed to
+    `run_episode`): the backends' mixins below report to it."""
+
+    def __init__(self) -> None:
+        self.s = 0.0
+        self.steps = 0
+        self.in_push = False
+        self.clock = time.thread_time
+        t0 = self.clock()
+        for _ in range(1000):
+            self.clock()
+        self.own = (self.clock() - t0) / 1001  # one clock read
+
+    def push(self, sim: Simulator, cmd: Any, **kwargs: Any) -> Any:
+        self.in_push = True
+        try:
+            return push(sim, cmd, **kwargs)
+        finally:
+            self.in_push = False
+
+    def call(self, fn: Callable[[], Any], steps: Callable[[Any], int]) -> Any:
+        """`fn()`, timed when in a push; `steps(result)`: the steps it ran."""
+        if not self.in_push:
+            return fn()
+        t0 = self.clock()
+        out = fn()
+        self.s += self.clock() - t0 - self.own
+        self.steps += steps(out)
+        return out
+
+
+# --- a bench subclass of the backend's class: its calls timed and recorded -----------------
+
+
+class TimedRenders:
+    """The images (`render_depth`) and tracking frames (`render_tracking_depth`), timed on
+    the `StepClock`; the mixin every backend's bench class starts with (it makes the clocks:
+    `clock`, `engine`, and `friction_log`, None or the list `RecordsFriction` fills)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self.clock = StepClock()
+        self.engine = EngineClock()
+        self.friction_log: list[tuple[tuple, list]] | None = None
+        super().__init__(*args, **kwargs)
+
+    def render_depth(self) -> Any:
+        with self.clock.timing("render"):
+            return super().render_depth()
+
+    def render_tracking_depth(self) -> Any:
+        with self.clock.timing("frame"):
+            return super().render_tracking_depth()
+
+
+class RecordsFriction:
+    """Every step's footprint friction input (`FootprintFriction.inputs`, which the engines
+    fill), per friction object the builds make, into `friction_log` while it is a list:
+    (the friction's constructor arguments, its inputs)."""
+
+    def build(self, scene: Any) -> None:
+        super().build(scene)
+        fr = getattr(self, "_fric", None)  # the engines' footprint friction (model)
+        log = self.friction_log
+        if log is not None and fr is not None:
+            fr.inputs = []
+            args = (scene.obj, scene.floor.mu_x, scene.floor.mu_y, scene.pusher)
+            log.append((args, fr.inputs))
+
+
+class PlanarSteps:
+    """planar's step is its compiled call (`advance`: a chunk; `advance_chunks`: chunks of
+    it), the friction solve inside it: each call timed, with the few lines of argument
+    handling around the compiled call; the protocol's steps it ran (its model takes fewer
+    where `SlowSteps` groups them)."""
+
+    def advance(self, targets: np.ndarray) -> tuple[bool, float]:
+        call = super().advance
+        return self.engine.call(lambda: call(targets), lambda out: len(targets))
+
+    def advance_chunks(self, targets: np.ndarray, chunk: int, stop: Any) -> list:
+        call = super().advance_chunks
+        return self.engine.call(lambda: call(targets, chunk, stop), lambda out: len(out) * chunk)
+
+
+class PybulletSteps:
+    """pybullet's step: every compiled chunk (`push_steps`, in `_compiled_steps`) timed, the
+    friction kernel inside it (`kernel_inside`: its replay is taken off); stepped from Python
+    (no client handle), every `_step_once`: Bullet's step with its pusher command and the
+    friction's call around it."""
+
+    kernel_inside = True
+
+    def _compiled_steps(self, targets: np.ndarray) -> bool:
+        call = super()._compiled_steps
+        return self.engine.call(lambda: call(targets), lambda out: len(targets))
+
+    def _step_once(self) -> None:
+        call = super()._step_once
+        self.engine.call(call, lambda out: 1)
+
+
+class MujocoSteps:
+    """MuJoCo's steps run inside its compiled loop, where no timer reaches: in a push of the
+    engine pass, before every chunk (`_friction_steps`) the engine's integration state is
+    saved (`mj_getState`), one chunk per call (`runs_chunks` off: the same steps, as
+    `advance_chunks` runs `advance`'s); after each episode, while its model is still built,
+    every chunk is replayed from its state as one `mj_step(m, d, n)` (`replay_steps`: the
+    pusher coasting at its velocity, the floor's friction force of the chunk's first step
+    held)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._snaps: list[tuple[np.ndarray, int]] = []
+        super().__init__(*args, **kwargs)
+
+    def runs_chunks(self) -> bool:
+        return not self.engine.in_push and super().runs_chunks()
+
+    def _friction_steps(self, m: Any, d: Any, starts: np.ndarray, vels: np.ndarray) -> Any:
+        if self.engine.in_push:
+            import mujoco
+
+            spec = mujoco.mjtState.mjSTATE_INTEGRATION
+            state = np.empty(mujoco.mj_stateSize(m, spec))
+            mujoco.mj_getState(m, d, state, spec)
+            self._snaps.append((state, len(starts)))
+        return super()._friction_steps(m, d, starts, vels)
+
+    def replay_steps(self) -> None:
+        """Time the chunks saved since the last call on the model now built."""
+        import mujoco
+
+        m, d = self._require()
+        sub = self.contact.substeps
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        for state, n in self._snaps:
+            mujoco.mj_setState(m, d, state, spec)
+            t0 = time.process_time()
+            mujoco.mj_step(m, d, n * sub)
+            self.engine.s += time.process_time() - t0
+            self.engine.steps += n
+        self._snaps.clear()
+
+
+ENGINE_STEPS = {"planar": PlanarSteps, "pybullet": PybulletSteps, "mujoco": MujocoSteps}
+
+
+def step_cost_simulator(backend: str, floor: str, speed: float) -> Any:
+    """The job's simulator (its physics), of a bench subclass of the backend's class whose
+    renders, friction inputs and engine steps are timed or recorded on demand."""
+    if backend not in ENGINE_STEPS:
+        raise SystemExit(f"no engine step timing for backend {backend}")
+    mixins = (TimedRenders, RecordsFriction, ENGINE_STEPS[backend])
+    return bench_simulator(job_simulator(backend, floor, speed), *mixins)
 
 
 def raw_step_s(sim: Simulator, spec: EpisodeSpec, n: int) -> float:
     """Seconds per step of the engine's own step call on the episode's built scene (best of
     three runs of n steps). Reaches into the backend for its engine handle: this is the one
     number that must not include the backend's Python."""
-    sim.build(episode_mod.build_scene(spec))
-    best = float("inf")
+    sim.build(build_scene(spec))
     if sim.name == "pybullet":
         import pybullet as pb
 
-        cid = sim._cid  # type: ignore[attr-defined]
-        for _ in range(3):
-            t0 = time.process_time()
+        cid = sim._cid
+
+        def run() -> None:
             for _ in range(n):
                 pb.stepSimulation(physicsClientId=cid)
-            best = min(best, time.process_time() - t0)
     elif sim.name == "mujoco":
         import mujoco
 
-        m, d = sim._require()  # type: ignore[attr-defined]
-        for _ in range(3):
-            t0 = time.process_time()
+        m, d = sim._require()
+
+        def run() -> None:
             mujoco.mj_step(m, d, n)
-            best = min(best, time.process_time() - t0)
     elif sim.name == "planar":
         from comexp.backends import planar_sim
 
-        m = sim._require()  # type: ignore[attr-defined]
-        q = sim._pusher_xy()
+        model = sim._require()
+        q = sim.pusher_xy()
         targets = np.repeat(q[None, :], n, axis=0)
-        dt, mu_p = sim.settings.timestep_s, sim._scene.obj.mu_pusher  # type: ignore[attr-defined]
-        for _ in range(3):
-            t0 = time.process_time()
-            m.run(q, targets, dt, mu_p, planar_sim._NO_TRACE, sim.slow_steps)  # type: ignore[attr-defined]
-            best = min(best, time.process_time() - t0)
+        dt, mu_p = sim.settings.timestep_s, sim.scene.obj.mu_pusher
+        slow = sim.slow_steps
+
+        def run() -> None:
+            model.run(q, targets, dt, mu_p, planar_sim._NO_TRACE, slow)
     else:
         raise SystemExit(f"no raw engine step for backend {sim.name}")
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.process_time()
+        run()
+        best = min(best, time.process_time() - t0)
     return best / n
 
 
-class ImpulseRecorder:
-    """Patches FootprintFriction to keep every step's friction input, per friction object
-    (`FootprintFriction.inputs`: filled by `impulse` and by MuJoCo's compiled loop alike)."""
-
-    def __init__(self) -> None:
-        self.objects: list[tuple[tuple, dict, list]] = []
-        self._init = ff.FootprintFriction.__init__
-
-    def __enter__(self) -> ImpulseRecorder:
-        rec, init = self.objects, self._init
-
-        def patched_init(fr: Any, *a: Any, **k: Any) -> None:
-            init(fr, *a, **k)
-            fr.inputs = []
-            rec.append((a, k, fr.inputs))
-
-        ff.FootprintFriction.__init__ = patched_init  # type: ignore[method-assign]
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        ff.FootprintFriction.__init__ = self._init  # type: ignore[method-assign]
-
-    def replay_s(self, dt: float) -> tuple[float, int]:
-        """Seconds in the compiled kernel alone over every recorded input (steps of `dt`),
-        and the count."""
-        total, count = 0.0, 0
-        for a, k, inputs in self.objects:
-            fr = ff.FootprintFriction(*a, **k)
-            g, fs, nrm, dxw, dyw = fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw
-            steps = [(np.array((x, y, w)), yaw, pushed) for x, y, w, yaw, pushed in inputs]
-            if not steps:
-                continue
-            call = DirectCall(ff.impulse_kernel)  # as the engines call it: no type dispatch
-            x0, yaw0, p0 = steps[0]
-            call(g, fs.copy(), nrm.copy(), dxw.copy(), dyw.copy(), x0, yaw0, dt, p0)  # resolve
-            t0 = time.process_time()
-            for xi_hat, yaw, pushed in steps:
-                call(g, fs, nrm, dxw, dyw, xi_hat, yaw, dt, pushed)
-            total += time.process_time() - t0
-            count += len(inputs)
-        return total, count
+def replay_s(log: list[tuple[tuple, list]], dt: float) -> tuple[float, int]:
+    """Seconds in the compiled friction kernel alone over every recorded input (steps of
+    `dt`, a friction object made anew from each one's arguments), and the count."""
+    total, count = 0.0, 0
+    for args, inputs in log:
+        if not inputs:
+            continue
+        fr = ff.FootprintFriction(*args)
+        g, fs, nrm, dxw, dyw = fr.geo, fr.fs, fr.normal, fr.dxw, fr.dyw
+        steps = [(np.array((x, y, w)), yaw, pushed) for x, y, w, yaw, pushed in inputs]
+        call = DirectCall(ff.impulse_kernel)  # as the engines call it: no type dispatch
+        x0, yaw0, p0 = steps[0]
+        call(g, fs.copy(), nrm.copy(), dxw.copy(), dyw.copy(), x0, yaw0, dt, p0)  # resolve
+        t0 = time.process_time()
+        for xi_hat, yaw, pushed in steps:
+            call(g, fs, nrm, dxw, dyw, xi_hat, yaw, dt, pushed)
+        total += time.process_time() - t0
+        count += len(inputs)
+    return total, count
 
 
-class EngineStepsInPushes:
-    """The engine's own step as the pushes drive it (contacts with the pusher, a sliding
-    object), not only on a resting scene: what `raw_step_s` cannot see.
+@contextmanager
+def recording(sim: Any) -> Iterator[list[tuple[tuple, list]]]:
+    """The friction inputs of the builds and steps within, recorded (`RecordsFriction`)."""
+    sim.friction_log = log = []
+    try:
+        yield log
+    finally:
+        sim.friction_log = None
 
-    pybullet: every compiled chunk (`push_steps`) of a pass is timed on the thread's CPU
-    clock (the clock's own cost, calibrated, is taken off each call); the friction kernel
-    runs inside it (`kernel_inside`: the caller takes the kernel's replay off); stepped
-    from Python (no client handle), every `stepSimulation` call. MuJoCo's steps run inside the
-    compiled loop, where no timer reaches: before every chunk of the pass the engine's
-    integration state is saved (`mj_getState`), and after each episode, while its model is
-    still built, every chunk is replayed from its state as one `mj_step(m, d, n)` (the pusher
-    coasting at its velocity, the floor's friction force of the chunk's first step held); in
-    that pass MuJoCo runs one chunk per call (`batches_chunks` off: the same steps)."""
 
-    def __init__(self, sim: Simulator) -> None:
-        self.sim = sim
-        self.s = 0.0
-        self.steps = 0
-        self._snaps: list[tuple[np.ndarray, int]] = []
-        self._in_push = False
-        self.kernel_inside = False  # the timed calls run the friction kernel too
-
-    def _timed_in_pushes(self, step: Any, steps_of: Any) -> Any:
-        """`step` timed call by call on the thread's CPU clock (its own cost, calibrated,
-        taken off) while a push is under way; `steps_of(args, result)`: the steps one call
-        ran."""
-        clock = time.thread_time
-        t0 = clock()
-        for _ in range(1000):
-            clock()
-        own = (clock() - t0) / 1001  # one clock read
-
-        def timed(*a: Any, **k: Any) -> Any:
-            if not self._in_push:
-                return step(*a, **k)
-            t0 = clock()
-            out = step(*a, **k)
-            self.s += clock() - t0 - own
-            self.steps += steps_of(a, out)
-            return out
-
-        push = self.sim.push
-        self._own_push = self.sim.__dict__.get("push")  # a wrapper already set, or None
-
-        def pushing(*a: Any, **k: Any) -> Any:
-            self._in_push = True
-            try:
-                return push(*a, **k)
-            finally:
-                self._in_push = False
-
-        self.sim.push = pushing  # type: ignore[method-assign]
-        return timed
-
-    def __enter__(self) -> EngineStepsInPushes:
-        sim = self.sim
-        if sim.name == "pybullet" and getattr(sim, "_handle", None) is not None:
-            from comexp.backends import pybullet_sim
-
-            # push_steps(handle, pusher, object, z, targets, ...): a step per target
-            self._pbsim, self._step = pybullet_sim, pybullet_sim._push_steps_call
-            pybullet_sim._push_steps_call = self._timed_in_pushes(
-                self._step, lambda a, out: len(a[4])
-            )
-            self.kernel_inside = True
-        elif sim.name == "pybullet":
-            import pybullet as pb
-
-            self._pb, self._step = pb, pb.stepSimulation
-            pb.stepSimulation = self._timed_in_pushes(self._step, lambda a, out: 1)
-        elif sim.name == "planar":
-            from comexp.backends import planar_sim
-
-            # the protocol's steps of a chunk (its model takes fewer where `SlowSteps` groups),
-            # and of the chunks run in one call (`_run_chunks`: how many ran x the chunk)
-            self._planar = planar_sim
-            self._step = planar_sim._run_call, planar_sim._run_chunks_call
-            planar_sim._run_call = self._timed_in_pushes(self._step[0], lambda a, out: len(a[8]))
-            planar_sim._run_chunks_call = self._timed_in_pushes(
-                self._step[1], lambda a, out: out * a[9]
-            )
-        elif sim.name == "mujoco":
-            import mujoco
-
-            self._mj = mujoco
-            fn = sim._friction_steps  # type: ignore[attr-defined]
-            spec = mujoco.mjtState.mjSTATE_INTEGRATION
-
-            def snapped(m: Any, d: Any, starts: np.ndarray, vels: np.ndarray) -> Any:
-                state = np.empty(mujoco.mj_stateSize(m, spec))
-                mujoco.mj_getState(m, d, state, spec)
-                self._snaps.append((state, len(starts)))
-                return fn(m, d, starts, vels)
-
-            sim._friction_steps = snapped  # type: ignore[attr-defined]
-            # this pass runs one chunk per call (the same steps: `_advance_chunks` runs
-            # `_advance`'s), so that every chunk has its state saved
-            self._batches = sim.batches_chunks
-            sim.batches_chunks = False
-        return self
-
-    def replay(self) -> None:
-        """MuJoCo: time the chunks saved since the last call on the model now built."""
-        if not self._snaps:
-            return
-        mujoco = self._mj
-        m, d = self.sim._require()  # type: ignore[attr-defined]
-        sub = self.sim.contact.substeps  # type: ignore[attr-defined]
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        for state, n in self._snaps:
-            mujoco.mj_setState(m, d, state, spec)
-            t0 = time.process_time()
-            mujoco.mj_step(m, d, n * sub)
-            self.s += time.process_time() - t0
-            self.steps += n
-        self._snaps.clear()
-
-    def _restore_push(self) -> None:
-        if self._own_push is None:
-            del self.sim.push  # back to the class's method
-        else:
-            self.sim.push = self._own_push  # type: ignore[method-assign]
-
-    def __exit__(self, *exc: object) -> None:
-        if self.sim.name == "pybullet" and self.kernel_inside:
-            self._pbsim._push_steps_call = self._step
-            self._restore_push()
-        elif self.sim.name == "pybullet":
-            self._pb.stepSimulation = self._step
-            self._restore_push()
-        elif self.sim.name == "planar":
-            self._planar._run_call, self._planar._run_chunks_call = self._step
-            self._restore_push()
-        elif self.sim.name == "mujoco":
-            del self.sim._friction_steps  # back to the class's method
-            self.sim.batches_chunks = self._batches
+def floor_pass(sim: Any, spec: EpisodeSpec) -> tuple[float, int, float, int]:
+    """The episode once more (builds are full resets: the same steps) with its engine steps
+    timed (`EngineClock`; MuJoCo's replayed) and its friction inputs recorded, in a pass of
+    their own where the timed call would hold the recording (pybullet), and the kernel
+    replayed: (kernel s, kernel steps, engine s without the kernel, engine steps)."""
+    engine = sim.engine
+    s0, n0 = engine.s, engine.steps
+    inside = getattr(sim, "kernel_inside", False)  # the timed calls run the kernel too
+    with nullcontext([]) if inside else recording(sim) as log:
+        run_episode(spec, sim, push=engine.push)
+        if hasattr(sim, "replay_steps"):
+            sim.replay_steps()
+    if inside:
+        with recording(sim) as log:
+            run_episode(spec, sim)
+    ks, kn = replay_s(log, sim.settings.timestep_s)
+    return ks, kn, engine.s - s0 - (ks if inside else 0.0), engine.steps - n0
 
 
 def measure(backend: str, n: int, speed: float, floor: str, raw_n: int) -> dict[str, Any]:
     specs = strided(job_specs(backend, floor, speed), n)
-    sim = make_simulator(backend, **job_backend_options(backend, floor, speed))  # the job's physics
+    sim = step_cost_simulator(backend, floor, speed)  # the job's physics
     out: dict[str, Any] = {"backend": backend, "episodes": len(specs), "speed": speed,
                            "floor": floor, "source": source_digest(backend)}  # fmt: skip
+    clock = sim.clock
+    walls = []
+    kernel_s = kernel_n = engine_s = engine_steps = 0
     try:
-        first: dict[str, EpisodeSpec] = {}
+        warm_up(specs, sim)  # one-offs per object (renderers, JIT)
+        # Each episode timed, then at once run again for its floor (`floor_pass`): the
+        # episode and its floor seconds apart, not passes minutes apart on a host whose
+        # speed drifts.
         for s in specs:
-            first.setdefault(s.object, s)
-        for s in first.values():  # warm-up: one-offs per object (renderers, JIT)
-            run_episode(s, sim)
-        t = Timers()
-        t.wrap(sim, "push", "push")
-        t.wrap(sim, "render_depth", "render")
-        t.wrap(sim, "render_tracking_depth", "frame")
-        walls = []
-        kernel_s, kernel_n = 0.0, 0
-        engine_s, engine_steps = 0.0, 0
-        # Each episode timed, then at once run again (builds are full resets: the same
-        # steps) with its friction inputs recorded and its engine steps timed, and both
-        # replayed: the episode and its floor seconds apart, not passes minutes apart on a
-        # host whose speed drifts.
-        for s in specs:
-            t.active = True
+            clock.active = True
             t0 = time.process_time()
-            run_episode(s, sim)
+            run_episode(s, sim, push=clock.push)
             walls.append(time.process_time() - t0)
-            t.active = False
-            with ImpulseRecorder() as rec, EngineStepsInPushes(sim) as engine:
-                run_episode(s, sim)
-                engine.replay()
-            ks, kn = rec.replay_s(sim.settings.timestep_s)
+            clock.active = False
+            ks, kn, es, en = floor_pass(sim, s)
             kernel_s, kernel_n = kernel_s + ks, kernel_n + kn
-            inside = ks if engine.kernel_inside else 0.0  # timed with the engine's steps
-            engine_s, engine_steps = engine_s + engine.s - inside, engine_steps + engine.steps
-        for name in ("push", "render_depth", "render_tracking_depth"):
-            delattr(sim, name)  # back to the class's methods
+            engine_s, engine_steps = engine_s + es, engine_steps + en
         raws = [raw_step_s(sim, s, raw_n) for s in strided(specs, min(4, len(specs)))]
     finally:
         sim.close()
-    ne = len(specs)
+    return out | summary(clock, walls, (kernel_s, kernel_n, engine_s, engine_steps), raws)
+
+
+def summary(
+    t: StepClock, walls: list[float], floor: tuple[float, int, float, int], raws: list[float]
+) -> dict[str, Any]:
+    """The figures of the timed episodes (`t`, `walls`), their floor passes (the kernel's
+    and the engine's seconds and steps) and the raw steps."""
+    kernel_s, kernel_n, engine_s, engine_steps = floor
+    ne = len(walls)
     physics_s = t.s["push"] - t.s["frame"] - t.s["track"]
-    out.update(
+    out: dict[str, Any] = dict(
         episode_ms=1e3 * sum(walls) / ne,
         median_ms=1e3 * statistics.median(walls),
         steps_per_ep=t.steps / ne,
-        # the engine's own steps: an engine jumps the still ones (`Simulator._steps_still`)
+        # the engine's own steps: an engine jumps the still ones (`Simulator.steps_still`)
         stepped_per_ep=engine_steps / ne,
         step_us=1e6 * physics_s / max(engine_steps, 1),
         raw_us=1e6 * statistics.median(raws),

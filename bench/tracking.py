@@ -4,14 +4,13 @@
     .venv/bin/python bench/tracking.py --backend planar --speed 4 --mu 1 --episodes 24 \\
         --fps 0,5,10 --oracle
 
-A strided slice of the job's own grid (`bench/episode_profile.job_specs`: every object, both
-pusher frictions, both Izz scales) on one floor `mu`; every episode is run once per camera
-rate in `--fps` (vision), once per rate > 0 with full-image tracking frames (`--full-frames`:
-the cost before the engines' window renders) and once with `rotation_source=oracle`
+A strided slice of the job's own grid (`common.job_specs`: every object, both pusher
+frictions, both Izz scales) on one floor `mu`; every episode is run once per camera rate in
+`--fps` (vision), once per rate > 0 with full-image tracking frames (`--full-frames`: the
+cost before the engines' window renders) and once with `rotation_source=oracle`
 (`--oracle`), the variants of one episode back to back so that the machine's load hits them
-alike. Watching never changes
-the physics (frames hang on the protocol's checks), so the variants differ only in what was
-measured and in what the estimator then chose.
+alike. Watching never changes the physics (frames hang on the protocol's checks), so the
+variants differ only in what was measured and in what the estimator then chose.
 
 Per rate: pushes, the share of pushes turning > 1 deg whose measured rotation has the true
 sign, the number of "aliased" pushes (measured off the true rotation by > 10 deg: a wrong
@@ -21,42 +20,220 @@ not count) relative to rate 0 (median of per-episode ratios, and the ratio of th
 then per variant the tracking renders' mean CPU time and size; with `--full-frames` how far
 the measured rotations of window and full frames are apart; with `--compare-frames` a
 pixel-level comparison of window and full frames over every frame of a further run; per
-variant the tracking's own CPU time per frame (`mask_pusher`, `observe_boundary`,
-`PoseTracker.track`). `--baseline FILE` adds every rate once more with another version
-of comexp/method/perception.py (the episode's perception and tracking, and planar's ray cast
-for every image), in the same run (its cost relative to its own 0 fps), and compares the
-results episode by episode:
+variant the tracking's own CPU time per frame (the episode loop's `track` phase:
+`mask_pusher`, `observe_boundary`, `PoseTracker.track`) and each tracked frame's turn beyond
+the tracker's prediction.
 
-    git show a74eeeb:comexp/method/perception.py > /tmp/perception_old.py
-    .venv/bin/python bench/tracking.py --backend pybullet --episodes 16 --fps 0,30 \\
-        --baseline /tmp/perception_old.py
+Measured as a client: the frames through a subclass of the backend's class
+(`TrackingFrames`), the tracking's time through the loop's phase timer (`run_episode`'s
+`timer`) and the turns beyond the prediction through the push handed to `run_episode`
+(`FrameWatch.push`, which sees the tracker the protocol's `on_still` belongs to). To compare
+another version of perception or tracking, run bench/compare_checkouts.py against a checkout
+of it (each checkout in its own process and venv): nothing is swapped in here.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import os
 import statistics
-import sys
 import time
-from collections.abc import Callable
-from dataclasses import replace
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
+from common import bench_simulator, job_specs
 
-sys.path.insert(0, os.path.dirname(__file__))
-
-from episode_profile import _load_module, job_specs  # noqa: E402
-
-import comexp.experiment.episode as episode_module  # noqa: E402
-from comexp.experiment.episode import EpisodeResult, build_scene, run_episode  # noqa: E402
-from comexp.experiment.simulator import make_simulator  # noqa: E402
-from comexp.method import perception  # noqa: E402
-from comexp.method.perception import MIN_HEIGHT_M, mask_pusher  # noqa: E402
-from comexp.method.scene import DepthImage  # noqa: E402
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeResult, EpisodeSpec, build_scene
+from comexp.method.frames import DepthImage
+from comexp.method.observation import MIN_HEIGHT_M, mask_pusher
+from comexp.sim.protocol import Frame, push
 
 ALIAS_DEG = 10.0
+
+
+# --- what is measured, as a client -------------------------------------------------------------
+
+
+class FrameComparison:
+    """Every tracking frame rendered both ways (window and full image) in the same state:
+    how far the window's pixels are from the full image's window, whether the object mask
+    (the tracker's threshold) differs, and how many pixels of the full image above the floor
+    lie outside the window once the pusher is masked (object pixels the window would miss, or
+    pusher pixels the mask leaves)."""
+
+    def __init__(self) -> None:
+        self.diffs: list[float] = []
+        self.flips = 0
+        self.outside = 0
+
+    def add(self, sim: Any, w: DepthImage) -> None:
+        f = sim.render_depth()
+        fc, wc = f.camera, w.camera
+        u0, v0 = round(fc.cx_px - wc.cx_px), round(fc.cy_px - wc.cy_px)
+        h, wd = w.depth_m.shape
+        part = f.depth_m[v0 : v0 + h, u0 : u0 + wd]
+        self.diffs.append(float(np.max(np.abs(w.depth_m - part))))
+        level = fc.position_m[2] - MIN_HEIGHT_M
+        self.flips += bool(np.any((w.depth_m < level) != (part < level)))
+        xy = sim.pusher_xy()
+        masked = mask_pusher(f, (float(xy[0]), float(xy[1])), sim.pusher_radius_m()).depth_m
+        above = masked < level
+        self.outside += int(above.sum() - above[v0 : v0 + h, u0 : u0 + wd].sum())
+
+
+class TrackingFrames:
+    """The tracking frames a variant renders (a mixin before the backend's class): the
+    engine's window (its own `render_tracking_depth`) or, `full_frames`, the full image
+    (`render_depth`, as before the engines' window renders); each render's CPU time and
+    pixels logged into `render_log` (a list, or None), each window compared with the full
+    image by `comparison` (or None)."""
+
+    full_frames = False
+    render_log: list[tuple[float, int]] | None = None
+    comparison: FrameComparison | None = None
+
+    def render_tracking_depth(self) -> DepthImage:
+        t = time.process_time()
+        full = self.full_frames
+        img = self.render_depth() if full else super().render_tracking_depth()
+        if self.render_log is not None:
+            self.render_log.append((time.process_time() - t, img.depth_m.size))
+        if self.comparison is not None:
+            self.comparison.add(self, img)
+        return img
+
+
+class FrameWatch:
+    """One variant's tracking, frame by frame: the CPU time of each frame's tracking (the
+    loop's "track" phase, as the episode's `timer`) and, through the push handed to the loop
+    (`push`), each tracked frame's turn beyond the tracker's prediction (|fitted - predicted
+    yaw|, deg: what a frame must stay below, half a symmetry angle), with the 3 largest."""
+
+    def __init__(self) -> None:
+        self.cpu: list[float] = []
+        self.surprise: list[float] = []
+        self.worst: list[tuple[float, str, float, float]] = []  # deg, episode, t_s, gap_s
+        self.context = ""
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        if name != "track":
+            yield
+            return
+        t = time.process_time()
+        try:
+            yield
+        finally:
+            self.cpu.append(time.process_time() - t)
+
+    def push(self, sim: Any, cmd: Any, **kwargs: Any) -> Any:
+        """The protocol's push; a watched push's frames seen before and after the tracker
+        takes them (the tracker is the one whose `hold` the loop hands over as `on_still`)."""
+        tracker = getattr(kwargs.get("on_still"), "__self__", None)
+        on_frame = kwargs.get("on_frame")
+        if tracker is not None and on_frame is not None:
+            kwargs["on_frame"] = self._watched(on_frame, tracker)
+        return push(sim, cmd, **kwargs)
+
+    def _watched(self, on_frame: Callable[[Frame], None], tracker: Any) -> Callable:
+        def watched(f: Frame) -> None:
+            history = tracker._history  # (t_s, yaw) of the push's frames so far
+            n, yaw0 = len(history), tracker.predicted_yaw(f.t_s)
+            gap_s = f.t_s - history[-1][0] if history else f.t_s
+            on_frame(f)
+            if len(tracker._history) > n:  # tracked (a frame showing no object is not used)
+                deg = abs(math.degrees(tracker.last.yaw_rad - yaw0))
+                self.surprise.append(deg)
+                self.worst = sorted([*self.worst, (deg, self.context, f.t_s, gap_s)], reverse=True)[
+                    :3
+                ]
+
+        return watched
+
+
+@dataclass
+class Variant:
+    """One way of running every episode, and what its runs measured."""
+
+    label: str
+    change: dict[str, Any]
+    results: list[EpisodeResult] = field(default_factory=list)
+    cpu_s: list[float] = field(default_factory=list)
+    renders: list[tuple[float, int]] = field(default_factory=list)
+    watch: FrameWatch = field(default_factory=FrameWatch)
+
+    def spec(self, spec: EpisodeSpec) -> EpisodeSpec:
+        s = replace(spec, **self.change)
+        if self.label == "oracle":
+            s = replace(s, estimator=replace(s.estimator, rotation_source="oracle"))
+        if " st" in self.label:
+            step = float(self.label.split(" st")[1])
+            s = replace(s, estimator=replace(s.estimator, track_step_deg=step))
+        if " gap" in self.label:
+            gap = float(self.label.split(" gap")[1])
+            s = replace(s, estimator=replace(s.estimator, track_gap_s=gap))
+        return s
+
+
+# --- the runs -------------------------------------------------------------------------------
+
+
+def make_variants(args: argparse.Namespace, rates: list[float]) -> list[Variant]:
+    variants = [Variant(f"{f:g} fps", {"camera_fps": f}) for f in rates]
+    if args.full_frames:
+        variants += [Variant(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
+    for step in [float(x) for x in args.track_steps.split(",") if x.strip()]:
+        variants += [Variant(f"{f:g} st{step:g}", {"camera_fps": f}) for f in rates if f > 0]
+    for gap in [float(x) for x in args.track_gaps.split(",") if x.strip()]:
+        variants += [Variant(f"{f:g} gap{gap:g}", {"camera_fps": f}) for f in rates if f > 0]
+    if args.oracle:
+        variants.append(Variant("oracle", {}))
+    return variants
+
+
+def run_variants(sim: Any, specs: list[EpisodeSpec], variants: list[Variant]) -> None:
+    """Every episode once per variant, back to back."""
+    for spec in specs:
+        # untimed: MuJoCo creates a new object geometry's renderer (~70 ms) on its first
+        # render, which would otherwise be charged to whichever variant runs first
+        sim.build(build_scene(spec))
+        sim.render_depth()
+        for v in variants:
+            s = v.spec(spec)
+            sim.full_frames = v.label.endswith("full")  # "full": through the full image
+            sim.render_log = v.renders
+            v.watch.context = (
+                f"{s.object} com {s.com_index} mu_p {s.mu_pusher:g} Izz {s.izz_scale:g}"
+            )
+            t = time.process_time()  # CPU time: the machine's other load does not count
+            v.results.append(run_episode(s, sim, push=v.watch.push, timer=v.watch))
+            v.cpu_s.append(time.process_time() - t)
+    sim.full_frames, sim.render_log = False, None
+
+
+def compare_frames(sim: Any, specs: list[EpisodeSpec]) -> None:
+    """Every episode once more, each tracking frame rendered as window and as full image and
+    compared (`FrameComparison`)."""
+    sim.comparison = c = FrameComparison()
+    try:
+        for spec in specs:
+            run_episode(spec, sim)
+    finally:
+        sim.comparison = None
+    print(
+        f"frames compared: {len(c.diffs)}; |window - full| depth max "
+        f"{max(c.diffs, default=0):.2e} m, median of frame maxima "
+        f"{statistics.median(c.diffs) if c.diffs else 0:.2e} m; frames whose object mask "
+        f"differs: {c.flips}; pixels above the floor outside the window, pusher masked: "
+        f"{c.outside}"
+    )
+
+
+# --- the report -----------------------------------------------------------------------------
 
 
 def summarise(label: str, results: list[EpisodeResult], walls: list[float], base: list[float]):
@@ -79,89 +256,94 @@ def summarise(label: str, results: list[EpisodeResult], walls: list[float], base
     )
 
 
-def _timed(render: Callable[[], DepthImage], log: list[tuple[float, int]]):
-    """`render`, logging each call's CPU time and pixel count."""
-
-    def timed() -> DepthImage:
-        t = time.process_time()
-        img = render()
-        log.append((time.process_time() - t, img.depth_m.size))
-        return img
-
-    return timed
-
-
-# what a baseline perception module replaces in the episode (`--baseline`)
-SWAPPED = (
-    "perceive_first",
-    "observe",
-    "PoseTracker",
-    "PerceptionError",
-    "mask_pusher",
-    "observe_boundary",
-)
-
-
-class FrameClock:
-    """CPU time of the tracking pieces of every frame (the episode's `on_frame`): the
-    variant's mask_pusher + observe_boundary + PoseTracker.track, logged into `log`; and
-    each tracked frame's turn beyond the tracker's prediction (|fitted - predicted yaw|,
-    deg) into `surprise`: what a frame must stay below (half a symmetry angle)."""
-
-    def __init__(self) -> None:
-        self.log: list[float] = []
-        self.surprise: list[float] = []
-        self.worst: list[tuple[float, str, float, float]] = []  # deg, episode, t_s, gap_s
-        self.context = ""
-        self._acc = 0.0
-
-    def surprised(self, track: Callable) -> Callable:
-        def g(tracker, view, t_s, *a, **k):
-            yaw0 = tracker.predicted_yaw(t_s)
-            h = tracker._history
-            gap_s = t_s - h[-1][0] if h else t_s
-            f = track(tracker, view, t_s, *a, **k)
-            deg = abs(math.degrees(f.pose.yaw_rad - yaw0))
-            self.surprise.append(deg)
-            self.worst.append((deg, self.context, t_s, gap_s))
-            self.worst = sorted(self.worst, reverse=True)[:3]
-            return f
-
-        return g
-
-    def timed(self, f: Callable, closes: bool) -> Callable:
-        def g(*a, **k):
-            t = time.process_time()
-            try:
-                return f(*a, **k)
-            finally:
-                self._acc += time.process_time() - t
-                if closes:  # track ends a frame
-                    self.log.append(self._acc)
-                    self._acc = 0.0
-
-        return g
-
-    def wrap(self, fns: dict) -> dict:
-        """The episode's names `fns`, their frame pieces timed (`track` on the class)."""
-        out = dict(fns)
-        out["mask_pusher"] = self.timed(fns["mask_pusher"], False)
-        out["observe_boundary"] = self.timed(fns["observe_boundary"], False)
-        cls = fns["PoseTracker"]
-        cls.track = self.timed(self.surprised(cls.track), True)
-        return out
+def report(variants: list[Variant]) -> None:
+    print(
+        "|    rate |  ok     | pushes | sign right (>1 deg) | aliased | max|err| | max|rot|"
+        " | fr/push | CoM err  | cost (median / total) |"
+    )
+    print("|" + "---|" * 10)
+    for v in variants:
+        summarise(v.label, v.results, v.cpu_s, variants[0].cpu_s)
+    for v in variants:
+        if v.renders:
+            ms = 1e3 * statistics.fmean(t for t, _ in v.renders)
+            px = statistics.fmean(n for _, n in v.renders)
+            print(
+                f"{v.label}: {len(v.renders)} tracking renders, {ms:.2f} ms CPU, {px:.0f} px each"
+            )
+    for v in variants:
+        if v.watch.cpu:
+            ms = 1e3 * statistics.fmean(v.watch.cpu)
+            print(
+                f"{v.label}: tracking (mask_pusher + observe_boundary + track) {ms:.3f} ms CPU "
+                f"per frame, {len(v.watch.cpu)} frames"
+            )
+    for v in variants:
+        if v.watch.surprise:
+            q = np.quantile(v.watch.surprise, [0.5, 0.99, 1.0])
+            worst = "; ".join(
+                f"{d:.2f} deg ({c}, t {t:.3f} s, gap {g:.3f} s)" for d, c, t, g in v.watch.worst
+            )
+            print(
+                f"{v.label}: turn beyond the prediction per tracked frame, median / 99% / max "
+                f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} deg; largest: {worst}"
+            )
+    by_label = {v.label: v for v in variants}
+    for v in variants:
+        rate = v.label.split(" ")[0]
+        if " st" in v.label or " gap" in v.label:
+            compare_variant(v.label, by_label[rate + " fps"].results, v.results)
+        if v.label.endswith("full"):
+            compare_results(v.label, by_label[rate + " fps"].results, v.results)
 
 
-def use(fns: dict, render: Callable) -> None:
-    """Make the episode (and planar's images: the name it imported) use these versions."""
-    for k, v in fns.items():
-        setattr(episode_module, k, v)
-    planar_sim = sys.modules.get("comexp.backends.planar_sim")
-    if planar_sim is not None:
-        planar_sim.render_prism_depth = render
+def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResult]) -> None:
+    """Window vs full-image tracking frames, episode by episode: over the pushes both chose
+    alike (same contact and direction), the largest difference in measured rotation; and how
+    many episodes chose a different push somewhere (a measured rotation moved a decision)."""
+    worst, diverged = 0.0, 0
+    for a, b in zip(win, full, strict=True):
+        for p, q in zip(a.pushes, b.pushes, strict=False):
+            if (p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y) != (
+                q.contact_x_cm,
+                q.contact_y_cm,
+                q.dir_x,
+                q.dir_y,
+            ):
+                diverged += 1
+                break
+            worst = max(worst, abs(p.rotation_deg - q.rotation_deg))
+    print(
+        f"{label} vs window: max |rotation difference| {worst:.2e} deg over the pushes chosen "
+        f"alike; {diverged} of {len(win)} episodes chose a different push"
+    )
 
 
-def main() -> None:
+def compare_variant(label: str, ref: list[EpisodeResult], new: list[EpisodeResult]) -> None:
+    """A tracking rule's variant vs the default, episode by episode: episodes whose status,
+    failure, push choices or decisions differ, and the largest |difference| of the measured
+    and true rotations and of the CoM error over the rest."""
+    other = 0
+    rot = rot_true = err = 0.0
+    for a, b in zip(new, ref, strict=True):
+        pa = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in a.pushes]
+        pb = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in b.pushes]
+        if (a.status, a.failure, pa) != (b.status, b.failure, pb):
+            other += 1
+            continue
+        for p, q in zip(a.pushes, b.pushes, strict=True):
+            rot = max(rot, abs(p.rotation_deg - q.rotation_deg))
+            rot_true = max(rot_true, abs(p.rotation_true_deg - q.rotation_true_deg))
+        if a.error_cm is not None and b.error_cm is not None:
+            err = max(err, abs(a.error_cm - b.error_cm))
+    print(
+        f"{label} vs default: {other} of {len(new)} episodes differ in status, failure, push "
+        f"choice or decision; over the others max |difference| rotation {rot:.2e} deg, true "
+        f"rotation {rot_true:.2e} deg, CoM error {err:.2e} cm"
+    )
+
+
+def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="planar")
     ap.add_argument("--speed", type=float, default=40.0)
@@ -194,13 +376,11 @@ def main() -> None:
         help="then run every episode once more at the last rate, rendering each tracking frame "
         "as window and as full image, and compare their pixels",
     )
-    ap.add_argument(
-        "--baseline",
-        metavar="FILE",
-        help="also every rate with this version of comexp/method/perception.py (e.g. git "
-        "show a74eeeb:comexp/method/perception.py > /tmp/perception_old.py), in the same run",
-    )
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> None:
+    args = parse_args()
     rates = [float(f) for f in args.fps.split(",")]
     if rates[0] != 0.0:
         raise SystemExit("--fps must start with 0 (the baseline of the cost ratio)")
@@ -208,195 +388,21 @@ def main() -> None:
     stride = max(1, len(specs) // args.episodes)
     specs = specs[::stride][: args.episodes]
     opts = {} if args.backend == "planar" else {"floor_friction": "model"}
-    sim = make_simulator(args.backend, **opts)
-    run_episode(specs[0], sim)  # warm-up (JIT, renderer)
-    variants: list[tuple[str, dict]] = [(f"{f:g} fps", {"camera_fps": f}) for f in rates]
-    if args.full_frames:
-        variants += [(f"{f:g} full", {"camera_fps": f}) for f in rates if f > 0]
-    steps = [float(x) for x in args.track_steps.split(",") if x.strip()]
-    for step in steps:
-        variants += [(f"{f:g} st{step:g}", {"camera_fps": f}) for f in rates if f > 0]
-    for gap in [float(x) for x in args.track_gaps.split(",") if x.strip()]:
-        variants += [(f"{f:g} gap{gap:g}", {"camera_fps": f}) for f in rates if f > 0]
-    clock = FrameClock()
-    current = clock.wrap({k: getattr(episode_module, k) for k in SWAPPED})
-    render_now = perception.render_prism_depth
-    if args.baseline:
-        if not os.path.isfile(args.baseline):
-            raise SystemExit(f"--baseline: no such file: {args.baseline}")
-        old = _load_module("baseline_perception", args.baseline)
-        baseline = clock.wrap({k: getattr(old, k) for k in SWAPPED})
-        # every rate, 0 too: a baseline's cost is relative to its own 0 fps episode
-        variants += [(f"{f:g} base", {"camera_fps": f}) for f in rates]
-    if args.oracle:
-        variants.append(("oracle", {}))
-    frame_cpu: dict[str, list[float]] = {v: [] for v, _ in variants}
-    surprise: dict[str, list[float]] = {v: [] for v, _ in variants}
-    worst: dict[str, list[tuple[float, str, float, float]]] = {v: [] for v, _ in variants}
-    results: dict[str, list[EpisodeResult]] = {v: [] for v, _ in variants}
-    walls: dict[str, list[float]] = {v: [] for v, _ in variants}
-    window = sim.render_tracking_depth
-    renders: dict[str, list[tuple[float, int]]] = {v: [] for v, _ in variants}
-    t0 = time.perf_counter()
-    for spec in specs:
-        # untimed: MuJoCo creates a new object geometry's renderer (~70 ms) on its first
-        # render, which would otherwise be charged to whichever variant runs first
-        sim.build(build_scene(spec))
-        sim.render_depth()
-        for label, change in variants:
-            s = replace(spec, **change)
-            if label == "oracle":
-                s = replace(s, estimator=replace(s.estimator, rotation_source="oracle"))
-            if " st" in label:
-                step = float(label.split(" st")[1])
-                s = replace(s, estimator=replace(s.estimator, track_step_deg=step))
-            if " gap" in label:
-                gap = float(label.split(" gap")[1])
-                s = replace(s, estimator=replace(s.estimator, track_gap_s=gap))
-            # "full": tracking frames through the full image (the hook's default)
-            render = sim.render_depth if label.endswith("full") else window
-            sim.render_tracking_depth = _timed(render, renders[label])
-            clock.log = frame_cpu[label]
-            clock.surprise = surprise[label]
-            clock.worst = worst[label]
-            clock.context = f"{s.object} com {s.com_index} mu_p {s.mu_pusher:g} Izz {s.izz_scale:g}"
-            if label.endswith("base"):
-                use(baseline, old.render_prism_depth)
-            t = time.process_time()  # CPU time: the machine's other load does not count
-            results[label].append(run_episode(s, sim))
-            worst[label] = clock.worst
-            walls[label].append(time.process_time() - t)
-            use(current, render_now)
-    print(
-        f"{args.backend}, iso floor mu {args.mu:g}, {args.speed:g} cm/s, {len(specs)} episodes "
-        f"(every {stride}th of the job's grid), {time.perf_counter() - t0:.0f} s"
-    )
-    print(
-        "|    rate |  ok     | pushes | sign right (>1 deg) | aliased | max|err| | max|rot|"
-        " | fr/push | CoM err  | cost (median / total) |"
-    )
-    print("|" + "---|" * 10)
-    for label, _ in variants:
-        base = walls["0 base" if label.endswith("base") else variants[0][0]]
-        summarise(label, results[label], walls[label], base)
-    for label, _ in variants:
-        if renders[label]:
-            ms = 1e3 * statistics.fmean(t for t, _ in renders[label])
-            px = statistics.fmean(n for _, n in renders[label])
-            print(
-                f"{label}: {len(renders[label])} tracking renders, {ms:.2f} ms CPU, "
-                f"{px:.0f} px each"
-            )
-    for label, _ in variants:
-        if frame_cpu[label]:
-            ms = 1e3 * statistics.fmean(frame_cpu[label])
-            print(
-                f"{label}: tracking (mask_pusher + observe_boundary + track) {ms:.3f} ms CPU "
-                f"per frame, {len(frame_cpu[label])} frames"
-            )
-    for label, _ in variants:
-        if surprise[label]:
-            q = np.quantile(surprise[label], [0.5, 0.99, 1.0])
-            print(
-                f"{label}: turn beyond the prediction per tracked frame, median / 99% / max "
-                f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} deg; largest: "
-                + "; ".join(
-                    f"{d:.2f} deg ({c}, t {t:.3f} s, gap {g:.3f} s)" for d, c, t, g in worst[label]
-                )
-            )
-    for label, _ in variants:
-        if label.endswith("base"):
-            compare_baseline(label, results[label.replace("base", "fps")], results[label])
-        if " st" in label or " gap" in label:
-            rate = label.split(" ")[0]
-            compare_baseline(label, results[rate + " fps"], results[label])
-    for label, _ in variants:
-        if label.endswith("full"):
-            compare_results(label, results[label.replace("full", "fps")], results[label])
-    if args.compare_frames:
-        compare_frames(sim, [replace(s, camera_fps=rates[-1]) for s in specs], window)
-
-
-def compare_results(label: str, win: list[EpisodeResult], full: list[EpisodeResult]) -> None:
-    """Window vs full-image tracking frames, episode by episode: over the pushes both chose
-    alike (same contact and direction), the largest difference in measured rotation; and how
-    many episodes chose a different push somewhere (a measured rotation moved a decision)."""
-    worst, diverged = 0.0, 0
-    for a, b in zip(win, full, strict=True):
-        for p, q in zip(a.pushes, b.pushes, strict=False):
-            if (p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y) != (
-                q.contact_x_cm,
-                q.contact_y_cm,
-                q.dir_x,
-                q.dir_y,
-            ):
-                diverged += 1
-                break
-            worst = max(worst, abs(p.rotation_deg - q.rotation_deg))
-    print(
-        f"{label} vs window: max |rotation difference| {worst:.2e} deg over the pushes chosen "
-        f"alike; {diverged} of {len(win)} episodes chose a different push"
-    )
-
-
-def compare_baseline(label: str, new: list[EpisodeResult], ref: list[EpisodeResult]) -> None:
-    """Current vs baseline perception, episode by episode: episodes whose status, failure, push
-    choices or decisions differ (any is a bug), and the largest |difference| of the measured
-    and true rotations and of the CoM error over the rest."""
-    other = 0
-    rot = rot_true = err = 0.0
-    for a, b in zip(new, ref, strict=True):
-        pa = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in a.pushes]
-        pb = [(p.contact_x_cm, p.contact_y_cm, p.dir_x, p.dir_y, p.decision) for p in b.pushes]
-        if (a.status, a.failure, pa) != (b.status, b.failure, pb):
-            other += 1
-            continue
-        for p, q in zip(a.pushes, b.pushes, strict=True):
-            rot = max(rot, abs(p.rotation_deg - q.rotation_deg))
-            rot_true = max(rot_true, abs(p.rotation_true_deg - q.rotation_true_deg))
-        if a.error_cm is not None and b.error_cm is not None:
-            err = max(err, abs(a.error_cm - b.error_cm))
-    print(
-        f"{label} vs current: {other} of {len(new)} episodes differ in status, failure, push "
-        f"choice or decision; over the others max |difference| rotation {rot:.2e} deg, true "
-        f"rotation {rot_true:.2e} deg, CoM error {err:.2e} cm"
-    )
-
-
-def compare_frames(sim, specs: list, window: Callable[[], DepthImage]) -> None:
-    """Every tracking frame rendered both ways (window and full image) in the same state:
-    how far the window's pixels are from the full image's window, whether the object mask
-    (the tracker's threshold) differs, and how many pixels of the full image above the floor
-    lie outside the window once the pusher is masked (object pixels the window would miss, or
-    pusher pixels the mask leaves)."""
-    diffs: list[float] = []
-    flips = outside = 0
-
-    def both() -> DepthImage:
-        nonlocal flips, outside
-        w, f = window(), sim.render_depth()
-        fc, wc = f.camera, w.camera
-        u0, v0 = round(fc.cx_px - wc.cx_px), round(fc.cy_px - wc.cy_px)
-        h, wd = w.depth_m.shape
-        part = f.depth_m[v0 : v0 + h, u0 : u0 + wd]
-        diffs.append(float(np.max(np.abs(w.depth_m - part))))
-        level = fc.position_m[2] - MIN_HEIGHT_M
-        flips += bool(np.any((w.depth_m < level) != (part < level)))
-        xy = sim._pusher_xy()
-        masked = mask_pusher(f, (float(xy[0]), float(xy[1])), sim._pusher_radius_m()).depth_m
-        above = masked < level
-        outside += int(above.sum() - above[v0 : v0 + h, u0 : u0 + wd].sum())
-        return w
-
-    sim.render_tracking_depth = both
-    for spec in specs:
-        run_episode(spec, sim)
-    print(
-        f"frames compared: {len(diffs)}; |window - full| depth max {max(diffs, default=0):.2e} m, "
-        f"median of frame maxima {statistics.median(diffs) if diffs else 0:.2e} m; frames whose "
-        f"object mask differs: {flips}; pixels above the floor outside the window, pusher masked: "
-        f"{outside}"
-    )
+    sim = bench_simulator(args.backend, TrackingFrames, **opts)
+    try:
+        run_episode(specs[0], sim)  # warm-up (JIT, renderer)
+        variants = make_variants(args, rates)
+        t0 = time.perf_counter()
+        run_variants(sim, specs, variants)
+        print(
+            f"{args.backend}, iso floor mu {args.mu:g}, {args.speed:g} cm/s, {len(specs)} "
+            f"episodes (every {stride}th of the job's grid), {time.perf_counter() - t0:.0f} s"
+        )
+        report(variants)
+        if args.compare_frames:
+            compare_frames(sim, [replace(s, camera_fps=rates[-1]) for s in specs])
+    finally:
+        sim.close()
 
 
 if __name__ == "__main__":

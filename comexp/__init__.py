@@ -1,23 +1,22 @@
 """comexp: centre-of-mass estimation by dynamic pushing.
 
-The package is laid out by concern, in the order data flows through it:
+The package is laid out by concern, from the job down to the method:
 
-- `comexp.experiment`: config -> objects -> grid -> task and episode loop -> simulator
-  interface (registry, view and contact geometry beside it);
-- `comexp.method`: scene (frames, units), geometry, perception (observation, tracking,
-  rendering), estimator;
+- `comexp.cli` (the `comexp` and `comexp-db` commands) and `comexp.api` (the notebook's `run`,
+  `load_results`, `replay`): thin adapters;
+- `comexp.experiment`: the driver side: a job's config and checks, the objects, the grid of
+  episodes, and the job service (`job.run_job`);
+- `comexp.workers`: Ray: the pool of worker actors, the Ray session, the kernels' warm-up;
+- `comexp.results`: the store (database), reports, plots, claims;
+- `comexp.episode`: the worker side: an episode's task and the loop that runs it;
 - `comexp.backends`: the simulators (planar reference, pybullet, MuJoCo);
-- `comexp.workers`: Ray actors that run episodes;
-- `comexp.results`: store (database), reports, plots, the notebook API;
-- `comexp.cli`: the `comexp` and `comexp-db` commands.
+- `comexp.sim`: the engine interface, the one push protocol and the scene's vocabulary;
+- `comexp.method`: frames, geometry, perception and the estimators, free of any simulator
+  (`comexp.method.estimator` is the estimator library for a robot's own observations).
 
-`comexp.run(overrides)` (runs a job, returns its episodes), `comexp.load_results(db,
-table="episodes")` (a pandas DataFrame) and `comexp.replay(db, episode_id)` are imported on
-first use, so `import comexp` stays light.
-The short module names the README and docs use (`comexp.estimator`, `comexp.perception`,
-`comexp.scene`, `comexp.objects`, `comexp.simulator`, `comexp.reports`) are thin modules that
-re-export the module in its room (`comexp/estimator.py` -> `comexp.method.estimator`, ...);
-as attributes of `comexp` they too are imported on first use.
+`comexp.run(overrides)`, `comexp.load_results(db, table="episodes")` and
+`comexp.replay(db, episode_id)` are `comexp.api`'s, imported on first use: the workers import
+this package too, and the episode side never loads Hydra, pandas or SQLAlchemy.
 """
 
 from __future__ import annotations
@@ -28,15 +27,8 @@ from typing import Any
 __version__ = "0.1.0"
 __all__ = ["load_results", "replay", "run"]
 
-# the re-export modules beside this file (comexp/<name>.py)
-SHORT_MODULES = ("estimator", "perception", "scene", "objects", "simulator", "reports")
-
 
 def __getattr__(name: str) -> Any:
-    if name in __all__:
-        from comexp.results import api
-
-        return getattr(api, name)
-    if name in SHORT_MODULES:
-        return importlib.import_module(f"comexp.{name}")
+    if name in __all__:  # the notebook API, imported on first use (see above)
+        return getattr(importlib.import_module("comexp.api"), name)
     raise AttributeError(f"module 'comexp' has no attribute {name!r}")

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from comexp.method.scene import FloorSpec, Pose2D, SceneSpec
+from comexp.method.frames import Pose2D
+from comexp.sim.protocol import push
+from comexp.sim.scene import FloorSpec, SceneSpec
 
 
 def nearby_starts(pose: Pose2D, n: int = 3) -> list[Pose2D]:
@@ -24,7 +26,8 @@ def push_on_view(sim, floor, obj, pose, cmd, watch: bool, every: int = 1):
     def wanted(t_s: float, driving: bool) -> bool:
         return round(t_s * 30.0) % every == 0
 
-    out = sim.push(
+    out = push(
+        sim,
         cmd,
         on_frame=lambda f: frames.append((f.t_s, f.pusher_xy_m, float(f.image.depth_m.sum()))),
         frame_interval_s=1.0 / 30.0 if watch else 0.0,

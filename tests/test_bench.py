@@ -1,7 +1,10 @@
 """The maintained benchmarks: bench/ holds the scripts docs/performance.md's table names (at
-most ten), each runs on a tiny input and prints its figures, and a bench that measures other
-physics than the job's, or whose episodes all fail, is caught here before it prints figures
-that mean nothing.
+most ten) and the helpers they share (bench/common.py, not a script); each script runs on a
+tiny input and prints its figures, and a bench that measures other physics than the job's,
+or whose episodes all fail, is caught here before it prints figures that mean nothing. The
+scripts are plain clients of the package: they patch nothing (they time and record through
+the episode loop's phase timer, the push they hand it, and subclasses of the backends'
+classes) and import no other script than bench/common.py.
 
 Most scripts run in this process (`runpy`, as `python bench/X.py` would: the imports are paid
 once for the suite); the Ray-backed runs and a second checkout's child processes are `slow`,
@@ -9,13 +12,13 @@ with a cheaper check of the same script in the default suite."""
 
 from __future__ import annotations
 
+import ast
 import collections
 import itertools
 import json
 import os
 import re
 import runpy
-import shutil
 import subprocess
 import sys
 import types
@@ -26,12 +29,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-sys.path.insert(0, str(BENCH))
+HELPERS = "common.py"  # what the scripts share: not a script
+sys.path.insert(0, str(BENCH))  # as `python bench/X.py` has it
 
-from episode_profile import job_backend_options, job_specs  # noqa: E402
+from common import job_backend_options, job_simulator, job_specs  # noqa: E402
 
-from comexp.experiment.simulator import physics_identity  # noqa: E402
+from comexp.backends.physics_settings import physics_identity  # noqa: E402
+from comexp.experiment.config import load_backend  # noqa: E402
 
 NUMBER = r"([-+]?\d[\d,]*\.?\d*(?:e[-+]?\d+)?)"
 
@@ -63,42 +67,79 @@ def bench_table() -> list[str]:
     return [n for row in rows for n in re.findall(r"`bench/([\w.]+)`", row.split("|")[1])]
 
 
+def bench_scripts() -> list[str]:
+    """The scripts in bench/: every file but the shared helpers."""
+    return sorted(p.name for p in BENCH.iterdir() if p.is_file() and p.name != HELPERS)
+
+
 # --- what bench/ holds ---------------------------------------------------------------------
 
 
 def test_bench_holds_the_scripts_docs_performance_names_at_most_ten():
     named = bench_table()
-    on_disk = sorted(p.name for p in BENCH.iterdir() if p.is_file())
+    on_disk = bench_scripts()
+    assert (BENCH / HELPERS).is_file()
     assert len(named) == len(set(named)), "a script named twice in the table"
     assert sorted(named) == on_disk, "bench/ and docs/performance.md's table differ"
     assert len(on_disk) <= 10, "bench/ keeps at most ten maintained benchmarks"
 
 
 def test_every_bench_script_has_a_smoke_test():
-    """Each script of the table is run by a test of this module (its file name in the code)."""
+    """Each script in bench/ is run by a test of this module (its file name in the code)."""
     source = Path(__file__).read_text()
-    for name in bench_table():
+    for name in bench_scripts():
         assert source.count(f'"{name}"') >= 1 or f"import {name[:-3]}\n" in source, name
 
 
-def test_docs_cite_removed_bench_scripts_with_the_commit_that_holds_them():
-    """A figure measured with a script since removed says where git keeps it."""
-    has_git = shutil.which("git") and (ROOT / ".git").exists()
-    for doc in DOCS:
-        text = doc.read_text()
-        for name in sorted(set(re.findall(r"bench/([\w]+\.(?:py|sh))", text))):
-            if (BENCH / name).exists():
-                continue
-            shown = re.findall(rf"git show ([0-9a-f]{{7,40}}):bench/{re.escape(name)}", text)
-            assert shown, f"{doc.name} cites bench/{name}, which is gone, without `git show`"
-            if has_git:
-                for commit in set(shown):
-                    r = subprocess.run(
-                        ["git", "cat-file", "-e", f"{commit}:bench/{name}"],
-                        cwd=ROOT,
-                        capture_output=True,
-                    )
-                    assert r.returncode == 0, f"{doc.name}: {commit} holds no bench/{name}"
+def _imported_names(tree: ast.AST) -> tuple[set[str], set[str]]:
+    """The top-level modules a file imports, and the names its imports bind."""
+    modules, bound = set(), set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules |= {a.name.split(".")[0] for a in node.names}
+            bound |= {(a.asname or a.name).split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level == 0 and node.module:
+                modules.add(node.module.split(".")[0])
+            bound |= {a.asname or a.name for a in node.names}
+    return modules, bound
+
+
+def _assigned_through(tree: ast.AST, names: set[str]) -> list[str]:
+    """Attribute assignments and deletions (`x.y = ...`, `del x.y.z`) whose root is one of
+    `names`: what an imported module, class or function would be patched by."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign | ast.Delete):
+            targets = node.targets
+        elif isinstance(node, ast.AugAssign | ast.AnnAssign):
+            targets = [node.target]
+        else:
+            continue
+        for t in targets:
+            root = t
+            while isinstance(root, ast.Attribute):
+                root = root.value
+            if t is not root and isinstance(root, ast.Name) and root.id in names:
+                found.append(f"line {node.lineno}: {ast.unparse(t)}")
+    return found
+
+
+def test_bench_scripts_are_plain_clients():
+    """No bench file patches the package (no `setattr`, no assignment to an attribute of
+    anything it imported, no test-style patching), edits the module path, or imports another
+    script: what scripts share is bench/common.py's. (compare_checkouts.py's child program,
+    a string run in another checkout, may import that checkout's older helpers.)"""
+    scripts = {p.stem for p in BENCH.glob("*.py")} - {Path(HELPERS).stem}
+    for path in sorted(BENCH.glob("*.py")):
+        text = path.read_text()
+        for word in ("setattr(", "sys.path", "monkeypatch"):
+            assert word not in text, f"bench/{path.name} uses {word}"
+        tree = ast.parse(text)
+        modules, bound = _imported_names(tree)
+        assert not modules & scripts, f"bench/{path.name} imports {sorted(modules & scripts)}"
+        patched = _assigned_through(tree, bound)
+        assert not patched, f"bench/{path.name} assigns to what it imported: {patched}"
 
 
 @pytest.mark.parametrize("backend", ["planar", "pybullet", "mujoco"])
@@ -107,8 +148,10 @@ def test_bench_pools_run_the_physics_the_episodes_name(backend):
     them every worker refused every episode as `physics_mismatch`, and the benches printed
     the timings of 200 refusals."""
     spec = job_specs(backend)[0]
-    assert physics_identity(backend, options=job_backend_options(backend)) == spec.physics
-    assert physics_identity(backend) != spec.physics or backend == "planar"
+    target = load_backend(backend)._target_
+    assert job_simulator(backend).target == target
+    assert physics_identity(backend, target, options=job_backend_options(backend)) == spec.physics
+    assert physics_identity(backend, target) != spec.physics or backend == "planar"
 
 
 # --- one in-process worker -----------------------------------------------------------------
@@ -126,7 +169,13 @@ def test_episode_profile_smoke(tmp_path, monkeypatch, capfd):
     assert "status              {'ok': 1}" in out
     assert figure(r"CPU ms/episode\s+{n}", out) > 0
     assert figure(r"steps/s in pushes\s+{n}", out) > 0
-    assert figure(r"physics \(sim.push\)\s+{n}%", out) > 0
+    # the loop's phases (its PhaseTimer), the engine's calls (a subclass of its class)
+    shares = {k: figure(rf"\n{k} \(.*?\)\s+{{n}}%", out) for k in ("build", "push", "measure")}
+    assert all(v > 0 for v in shares.values()) and sum(shares.values()) < 100.5
+    physics = figure(r"\n  physics \(push - frames\)\s+{n}%", out)
+    assert 0 < physics < figure(r"\npush \(the protocol\)\s+{n}%", out)
+    assert figure(r"  tracking\s+[\d.]+%\s+[\d.]+\s+{n}", out) > 0  # frames per episode
+    assert figure(r"sim\.build {n} ms", out) > 0 and figure(r"sim\.render_depth {n} ms", out) > 0
     assert len(json.loads(dump.read_text())) == 1
 
 
@@ -152,7 +201,7 @@ def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
         capfd=capfd,
     )
     assert figure(r"CPU {n} ms/episode", out) > 0
-    assert "episode.py:" in out and "(run_episode)" in out
+    assert "comexp/episode/loop.py:" in out and "(run_episode)" in out
     step = re.search(
         r"\n\s+([\d.]+)%\s+[\d.]+\s+[\d.]+\s+comexp\.backends\.planar_sim\._run_chunks "
         r"\(compiled\)",
@@ -162,8 +211,8 @@ def test_episode_profile_cprofile_names_the_compiled_step(monkeypatch, capfd):
 
 
 def test_step_cost_smoke(monkeypatch, capfd):
-    """pybullet's engine step is its compiled chunk (`_push_steps_call`) timed in the pushes,
-    less the friction kernel's replay; the module's call is put back afterwards."""
+    """pybullet's engine step is its compiled chunk (`_compiled_steps`, timed by a subclass)
+    in the pushes, less the friction kernel's replay; the module's call left as it is."""
     from comexp.backends import pybullet_sim
 
     call = pybullet_sim._push_steps_call
@@ -185,8 +234,9 @@ def test_step_cost_smoke(monkeypatch, capfd):
 
 
 def test_step_cost_planar_times_its_compiled_chunks(monkeypatch, capfd):
-    """planar's step is its compiled chunk (`_run_call`, the friction solve inside): timed in
-    the pushes, no separate kernel, and the module's call put back afterwards."""
+    """planar's step is its compiled chunk (`advance` / `advance_chunks`, the friction solve
+    inside, timed by a subclass): timed in the pushes, no separate kernel, and the module's
+    call left as it is."""
     from comexp.backends import planar_sim
 
     call = planar_sim._run_call
@@ -238,27 +288,27 @@ def test_planar_speed_smoke(monkeypatch, capfd):
 
 
 def test_tracking_smoke(monkeypatch, capfd):
-    """tracking.py wraps the episode's perception names and `PoseTracker.track` for good (a
-    process of its own would not care): restored here after the run."""
-    from tracking import SWAPPED
+    """tracking.py measures through a subclass of the backend's class, the loop's timer and
+    the push it hands the loop: the package's names are as they were after the run."""
+    import comexp.episode.loop as loop
+    from comexp.method.tracking import PoseTracker
 
-    import comexp.backends.planar_sim as planar_sim
-    import comexp.experiment.episode as episode_module
-
-    for k in SWAPPED:
-        monkeypatch.setattr(episode_module, k, getattr(episode_module, k))
-    monkeypatch.setattr(episode_module.PoseTracker, "track", episode_module.PoseTracker.track)
-    monkeypatch.setattr(planar_sim, "render_prism_depth", planar_sim.render_prism_depth)
+    names = dict(vars(loop))
+    track = PoseTracker.track
     out = run_bench(
         "tracking.py",
-        *("--backend", "planar", "--episodes", "1", "--fps", "0,30"),
+        *("--backend", "planar", "--episodes", "1", "--fps", "0,30", "--full-frames"),
         monkeypatch=monkeypatch,
         capfd=capfd,
     )
+    assert dict(vars(loop)) == names and PoseTracker.track is track
     assert figure(r"\|\s+0 fps \|\s+{n}/1", out) == 1
     assert figure(r"\|\s+30 fps \|\s+{n}/1", out) == 1
     assert figure(r"30 fps: tracking \(.*?\) {n} ms CPU per frame", out) > 0
     assert figure(r"30 fps: {n} tracking renders", out) > 0
+    assert figure(r"30 full: {n} tracking renders", out) == figure(r"30 fps: {n} tracking", out)
+    assert figure(r"30 fps: turn beyond the prediction .*? max [\d.]+ / [\d.]+ / {n} deg", out) < 30
+    assert figure(r"30 full vs window: max \|rotation difference\| {n} deg", out) < 1e-6
 
 
 def test_engine_agreement_smoke(monkeypatch, capfd):
@@ -299,12 +349,12 @@ def test_compare_checkouts_smoke(tmp_path, monkeypatch, capfd):
 
     def child_here(tree: Path, args, extra: list[str]) -> dict:
         out = tmp_path / f"side{next(sides)}.json"
-        argv = ["-c", args.backend, args.floor, str(args.speed), str(args.episodes), str(out)]
+        argv = ["compare_child.py", args.backend, args.floor, str(args.speed),
+                str(args.episodes), str(out)]  # fmt: skip
         with monkeypatch.context() as m:
             m.chdir(tree)
             m.setattr(sys, "argv", [*argv, *extra])
-            m.setattr(sys, "path", list(sys.path))
-            child = compile(compare_checkouts._CHILD, "compare_checkouts child", "exec")
+            child = compile(compare_checkouts._CHILD, "compare_child.py", "exec")
             exec(child, {"__name__": "__main__"})  # noqa: S102 - the script's own child program
         return json.loads(out.read_text())
 
@@ -320,6 +370,21 @@ def test_compare_checkouts_smoke(tmp_path, monkeypatch, capfd):
     assert figure(r"identical episodes: {n} of 1", out) == 1
     assert figure(r"round 1: CPU ms/episode old {n}", out) > 0
     assert figure(r"old / new CPU: {n}", out) > 0
+
+
+def test_compare_checkouts_child_falls_back_to_an_older_layout():
+    """The child program takes the first of its names that imports (an older checkout's
+    modules and bench helpers), and names every failure when none does."""
+    import compare_checkouts
+
+    child: dict = {}
+    exec(compile(compare_checkouts._CHILD, "compare_child.py", "exec"), child)  # noqa: S102
+    first = child["first"]
+    assert first("comexp_no_such_layout.loop:run_episode", "os.path:join") is os.path.join
+    assert first("os:no_such_name", "os:sep") == os.sep
+    with pytest.raises(ImportError, match=r"(?s)comexp_no_such_layout.*os:no_such_name"):
+        first("comexp_no_such_layout:x", "os:no_such_name")
+    assert child["helper"]("strided").__module__ == "common"  # this checkout's helpers
 
 
 @pytest.mark.slow
@@ -342,13 +407,14 @@ def test_compare_checkouts_runs_each_checkout_in_its_venv():
 def test_memory_samples_a_process_tree(capfd):
     """memory.py's sampler and report on this process and a child, without Ray."""
     import memory
+    from common import memory_kb
 
     child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     try:
         sampler = memory.TreeSampler(os.getpid(), 0.05).start()
         sampler.sample()
         sampler.stop()
-        start = {child.pid: memory.memory_kb(child.pid)["rss"]}
+        start = {child.pid: memory_kb(child.pid)["rss"]}
         o = {
             "backend": "pybullet",
             "episodes": 0,
@@ -412,7 +478,7 @@ def test_scaling_reports_runs(capfd):
     [
         (("memory.py", "--episodes", "1", "--workers", "1", "--interval", "0.2"),
          r"peak total over the tree: PSS {n} MB"),
-        (("scaling.py", "--episodes", "2", "--workers", "1"), r"Ray start {n} s"),
+        (("scaling.py", "--episodes", "2", "--workers", "1"), r"Ray's start {n} s"),
     ],
     ids=["memory", "scaling"],
 )  # fmt: skip
@@ -436,7 +502,7 @@ def small_study(path: Path, source: str, seed: int) -> list[float]:
     """3 objects x 3 CoMs x 2 speeds on two backends into `path`; the errors, in order."""
     from test_db import make_result
 
-    from comexp.experiment.episode import EstimatorSettings
+    from comexp.method.estimator import EstimatorSettings
     from comexp.results.store import ResultsDB
 
     rng = np.random.default_rng(seed)

@@ -1,6 +1,7 @@
 """The `comexp` command as users run it: the installed config tree from any directory,
-one-line errors that write nothing, runs with a fake runner (no physics) that store, resume
-and survive Ctrl-C, and the two example commands of the brief.
+one-line errors that write nothing, runs on the tests' own backend (planar episodes, plugged in
+from tests/conf as a user's backend is) that store, resume and survive Ctrl-C, and the two
+example commands of the brief.
 
 The installed script runs in a child process where the process matters (--help and --cfg,
 a bad run and multirun, Ctrl-C, joining a cluster); the other cases call the script's own
@@ -31,11 +32,8 @@ import pytest
 import yaml
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
-# the fake runner and simulator (no physics), through the process' test seam
-FAKE = {
-    "COMEXP_RUNNER": "test_workers:fake_run",
-    "COMEXP_SIMULATOR_FACTORY": "test_workers:FakeSimulator",
-}
+# the tests' backend (tests/scripted_backend.py), from the tests' config directory
+SCRIPTED = (f"hydra.searchpath=[file://{TESTS_DIR}/conf]", "backend=scripted")
 SMALL = ["grid.coms_per_object=1", "grid.izz_scales=[1]", "pusher.mu=[1.0]"]
 
 
@@ -80,7 +78,7 @@ def comexp_in_process(cwd: Path, *args: str, **env: str) -> Ran:
     without the ~2 s of Python and Hydra imports a child process pays. A job that runs uses
     the Ray this process has started (the `local_ray` fixture), else starts one. Everything
     `main` touches is put back: cwd, argv, environment, Hydra's global state, the root
-    logger, the record factory.
+    logger and its handlers' filters.
     """
     from hydra.core.global_hydra import GlobalHydra
 
@@ -89,7 +87,6 @@ def comexp_in_process(cwd: Path, *args: str, **env: str) -> Ran:
     out, err = io.StringIO(), io.StringIO()
     root = logging.getLogger()
     saved = (os.getcwd(), sys.argv[:], dict(os.environ), root.handlers[:], root.level)
-    factory = logging.getLogRecordFactory()
     os.environ.update(_env(**env))
     for k in [k for k in os.environ if k not in _env(**env)]:  # what _env leaves out
         del os.environ[k]
@@ -109,7 +106,8 @@ def comexp_in_process(cwd: Path, *args: str, **env: str) -> Ran:
         os.environ.update(env0)
         root.handlers[:] = handlers
         root.setLevel(level)
-        logging.setLogRecordFactory(factory)
+        for h in handlers:
+            h.filters[:] = [f for f in h.filters if type(f).__name__ != "RedactFilter"]
         cli._show_jobs = None
         GlobalHydra.instance().clear()
     return Ran(code, out.getvalue(), err.getvalue())
@@ -210,7 +208,7 @@ def test_malformed_object_file_is_one_line_with_its_position(
     tmp_path: Path, args: list[str]
 ) -> None:
     conf = _user_conf(tmp_path)
-    r = comexp_in_process(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", **FAKE)
+    r = comexp_in_process(tmp_path, "--config-dir", str(conf), *args, "db=results/x.db", *SCRIPTED)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("comexp: error: object 'bad': "), r.stderr
@@ -305,7 +303,7 @@ def test_an_unreachable_ray_address_fails_fast(tmp_path: Path, address: str) -> 
     """Refused (nothing listens) or unanswered (TEST-NET, packets dropped): one line naming
     the address well within 30 s, where Ray alone retries for minutes; nothing written."""
     t0 = time.monotonic()
-    r = comexp_in_process(tmp_path, f"ray.address={address}", *SMALL, "db=results/x.db", **FAKE)
+    r = comexp_in_process(tmp_path, f"ray.address={address}", *SMALL, "db=results/x.db", *SCRIPTED)
     wall_s = time.monotonic() - t0
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1, r.stderr
@@ -325,7 +323,7 @@ def test_a_port_that_is_no_ray_head_fails_in_one_line(tmp_path: Path) -> None:
     tmp = tempfile.mkdtemp(prefix="cxj-", dir="/tmp")  # short: Ray's socket paths
     try:
         t0 = time.monotonic()
-        r = comexp(tmp_path, f"ray.address={address}", *SMALL, "db=x.db", TMPDIR=tmp, **FAKE)
+        r = comexp(tmp_path, f"ray.address={address}", *SMALL, "db=x.db", *SCRIPTED, TMPDIR=tmp)
         wall_s = time.monotonic() - t0
         leftover = os.listdir(tmp)
     finally:
@@ -371,7 +369,7 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path, local_ray) ->
         "pusher.mu=[1.0]",
         "db=results/t.db",
     ]
-    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=2", **FAKE)
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=2", *SCRIPTED)
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "t.db"
     assert rows(db, "select object, count(*) from episodes group by object") == [
@@ -381,13 +379,13 @@ def test_run_stores_resumes_and_finds_user_objects(tmp_path: Path, local_ray) ->
     summaries = list((tmp_path / "results" / "runs").glob("*/summary.md"))
     assert len(summaries) == 1 and "my_tri" in summaries[0].read_text()
     # rerun with one more CoM per object: only the 2 new episodes run
-    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3")
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3", *SCRIPTED)
     assert r.returncode == 0, r.stderr
     assert "4 already stored, 2 to run" in r.stdout + r.stderr, r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct sweep_id) from episodes") == [(6, 2)]
     assert rows(db, "select count(*) from sweeps") == [(2,)]
     # nothing left to do: no new sweep, no Ray
-    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3")
+    r = comexp_in_process(tmp_path, *args, "grid.coms_per_object=3", *SCRIPTED)
     assert r.returncode == 0 and "all 6 episodes already stored" in r.stdout
     assert rows(db, "select count(*) from sweeps") == [(2,)]
 
@@ -397,7 +395,7 @@ def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path, local_ray)
     the two methods on the same grid are two sets of episodes, told apart in the database."""
     args = [*SMALL, "floor.mu=[1.0]", "grid.objects=[rect_8x5]", "db=results/m.db"]
     for method in ("magnitude", "paper"):
-        r = comexp_in_process(tmp_path, *args, f"estimator.method={method}", **FAKE)
+        r = comexp_in_process(tmp_path, *args, f"estimator.method={method}", *SCRIPTED)
         assert r.returncode == 0, r.stderr
         assert "0 already stored" in r.stdout + r.stderr, r.stdout + r.stderr
     got = rows(tmp_path / "results" / "m.db", "select estimator from episodes order by id")
@@ -406,7 +404,7 @@ def test_estimator_method_reaches_the_stored_episodes(tmp_path: Path, local_ray)
 
 def test_aniso_multirun_example(tmp_path: Path, local_ray) -> None:
     r = comexp_in_process(
-        tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", **FAKE
+        tmp_path, "-m", "floor=aniso", "speed=40,4", *SMALL, "db=results/a.db", *SCRIPTED
     )
     assert r.returncode == 0, r.stderr
     db = tmp_path / "results" / "a.db"
@@ -433,14 +431,21 @@ def test_aniso_multirun_example(tmp_path: Path, local_ray) -> None:
 
 
 def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path, local_ray) -> None:
-    args = [*SMALL, "floor.mu=[1.0]", "db=results/i.db", "execution.batch_size=2"]
+    args = [
+        *SMALL,
+        "floor.mu=[1.0]",
+        "db=results/i.db",
+        "execution.batch_size=2",
+        *SCRIPTED,
+        "+backend.options.build_sleep_s=0.4",
+    ]
     proc = subprocess.Popen(
         [*_command(), *args],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env=_env(FAKE_RUN_SLEEP_S="0.4", **FAKE),
+        env=_env(),
         # a suite started in the background (`nohup make test &`) inherits SIGINT ignored, and
         # so would comexp: it then ran to the end and exited 0 (seen in a .ci/run so started)
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
@@ -464,7 +469,7 @@ def test_interrupted_run_keeps_results_and_resumes(tmp_path: Path, local_ray) ->
     assert "interrupted" in err and "Traceback" not in err
     kept = rows(db, "select count(*) from episodes")[0][0]
     assert 4 <= kept < 20  # what finished was stored, before the end
-    r = comexp_in_process(tmp_path, *args, **FAKE)
+    r = comexp_in_process(tmp_path, *args)
     assert r.returncode == 0, r.stderr
     assert f"{kept} already stored, {20 - kept} to run" in r.stdout + r.stderr
     assert rows(db, "select count(*), count(distinct object) from episodes") == [(20, 20)]
@@ -500,24 +505,24 @@ def test_the_planar_reference_runs_a_job_with_real_episodes(
     """`backend=planar` behind the same command line: real physics, perception and estimator,
     stored with the planar physics identity; the job's first episode fills the kernel cache
     in a child before Ray is asked for (workers/kernel_cache.py)."""
+    import comexp.experiment.job as job
     import comexp.workers.kernel_cache as kernel_cache
-    import comexp.workers.session as session
     from comexp.results.store import ResultsDB
 
     calls: list[tuple] = []
-    warm, ensure = kernel_cache.warm_kernel_cache, session.ensure_ray
+    warm, ensure = job.warm_kernel_cache, job.ensure_ray
 
-    def warm_up(backend, spec, options=None, **kw):
-        calls.append(("warm", backend, spec.object, options))
-        return warm(backend, spec, options, **kw)
+    def warm_up(simulator, spec, **kw):
+        calls.append(("warm", simulator.name, spec.object, dict(simulator.options)))
+        return warm(simulator, spec, **kw)
 
     def ensure_ray(*a, **kw):
         calls.append(("ray",))
         return ensure(*a, **kw)
 
     monkeypatch.setattr(kernel_cache, "_warmed", set())
-    monkeypatch.setattr(kernel_cache, "warm_kernel_cache", warm_up)
-    monkeypatch.setattr(session, "ensure_ray", ensure_ray)
+    monkeypatch.setattr(job, "warm_kernel_cache", warm_up)
+    monkeypatch.setattr(job, "ensure_ray", ensure_ray)
     r = comexp_in_process(
         tmp_path,
         "backend=planar",

@@ -10,8 +10,9 @@ Faults, each checked against the database (every episode stored exactly once, al
 (b) one worker (actor) process is SIGKILLed mid-sweep;
 (c) the driver is SIGKILLed mid-sweep: the same command resumes, a third run stores nothing;
 (d) two sweeps write one SQLite file at once (overlapping grids).
-The sweeps use the fake runner of `test_workers.py` (0.25 s per episode, no physics) so that
-there is time to strike part-way; one test runs real pybullet episodes across both nodes.
+The sweeps run the tests' backend (tests/scripted_backend.py: planar episodes, each build
+slowed by 0.25 s) so that there is time to strike part-way; one test runs real pybullet
+episodes across both nodes.
 """
 
 from __future__ import annotations
@@ -37,11 +38,12 @@ import pytest
 TESTS_DIR = str(Path(__file__).resolve().parent)
 BIN = Path(sys.executable).parent
 HEAD_IP, NODE_IP = "127.0.0.2", "127.0.0.3"
-# the fake runner and simulator (no physics), through the process' test seam
-FAKE = {
-    "COMEXP_RUNNER": "test_workers:fake_run",
-    "COMEXP_SIMULATOR_FACTORY": "test_workers:FakeSimulator",
-}
+# the tests' backend, every build slowed down (a plug-in: every node imports it from TESTS_DIR)
+SCRIPTED = (
+    f"hydra.searchpath=[file://{TESTS_DIR}/conf]",
+    "backend=scripted",
+    "+backend.options.build_sleep_s=0.25",
+)
 # 20 objects x 2 CoMs = 40 episodes of 0.25 s: ~5 s per worker pair, time to strike part-way
 SWEEP = [
     "grid.coms_per_object=2",
@@ -136,7 +138,6 @@ class LoopbackCluster:
             RAY_USAGE_STATS_ENABLED="0",
             RAY_AUTH_MODE="token",
             RAY_AUTH_TOKEN=secrets.token_hex(32),  # in the environment only, never in ~/.ray
-            FAKE_RUN_SLEEP_S="0.25",
             # drivers put their zero-CPU join node's temp dir here: `leftovers` sees it
             TMPDIR=self.root,
         )
@@ -202,11 +203,17 @@ class LoopbackCluster:
     def comexp(
         self, cwd: Path, *args: str, prefix: tuple[str, ...] = (), fake: bool = True
     ) -> Driver:
-        """A driver on the cluster; `fake`: the fake runner and simulator (no physics)."""
+        """A driver on the cluster; `fake`: on the tests' slowed-down backend."""
         p = subprocess.Popen(
-            [*prefix, str(BIN / "comexp"), f"ray.address={self.address}", *args],
+            [
+                *prefix,
+                str(BIN / "comexp"),
+                f"ray.address={self.address}",
+                *args,
+                *(SCRIPTED if fake else ()),
+            ],
             cwd=cwd,
-            env={**self.env, **FAKE} if fake else self.env,
+            env=self.env,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -296,11 +303,12 @@ def _rows(db: Path, sql: str) -> list[tuple]:
 
 
 def _stored(db: Path) -> list[tuple[str, str]]:
-    """(status, detail) of the stored episodes; [] while the file or schema is not there."""
+    """(status, node) of the stored episodes; [] while the file or schema is not there."""
     if not db.exists():
         return []
     try:
-        return _rows(db, "select status, detail from episodes")
+        rows = _rows(db, "select status, worker from episodes")
+        return [(status, worker.rsplit(":", 1)[0]) for status, worker in rows]
     except sqlite3.OperationalError:
         return []
 
@@ -345,7 +353,7 @@ def _per_node(out: str) -> dict[str, int]:
 
 def _both_nodes_stored(db: Path, at_least: int) -> bool:
     rows = _stored(db)
-    return len(rows) >= at_least and len({d.split()[-1] for _, d in rows}) == 2
+    return len(rows) >= at_least and len({node for _, node in rows}) == 2
 
 
 # --- a driver on a machine that runs no Ray node ------------------------------------------------
@@ -466,7 +474,7 @@ def test_losing_the_second_node_costs_retries_not_episodes(
     assert "a worker died" in d.out, d.out
     _report(f"(a) {what} of the second node killed", db, N_SWEEP, stored_at_strike, d.out)
     _assert_complete(db, N_SWEEP)
-    nodes = {det.split()[-1] for _, det in _stored(db)}
+    nodes = {node for _, node in _stored(db)}
     assert len(nodes) == 2  # both nodes did work before the loss
 
 

@@ -16,14 +16,14 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
-from comexp.cli.run import probe_resources
 from comexp.experiment import config as config_module
 from comexp.experiment.config import (
     ConfigError,
     prepare_job,
     to_experiment,
 )
-from comexp.experiment.episode import EstimatorSettings
+from comexp.experiment.job import probe_resources
+from comexp.method.estimator import EstimatorSettings
 from comexp.workers import session
 
 TRIANGLE = """\
@@ -248,7 +248,9 @@ def test_validation_is_pure() -> None:
     assert out.returncode == 0, out.stderr
     loaded = ast.literal_eval(out.stdout.strip().splitlines()[-1])
     assert loaded, "the check sees the modules"
-    wrong = [m for m in loaded if m.startswith(("comexp.results", "comexp.workers", "ray"))]
+    # the workers' settings are plain dataclasses the config composes (no Ray)
+    workers = ("comexp.workers.pool", "comexp.workers.session", "comexp.workers.actor")
+    wrong = [m for m in loaded if m.startswith(("comexp.results", *workers, "ray"))]
     assert wrong == [], wrong
     assert not [m for m in loaded if m.startswith("sqlalchemy")]
 
@@ -274,23 +276,24 @@ def test_null_and_auto_need_no_probe(monkeypatch) -> None:
     session.check_ray_address("auto")
 
 
-def test_every_estimator_setting_has_its_knob_with_the_settings_default() -> None:
-    """The `estimator` node is written out (no reflection): a settings field added without its
-    knob, or a default that drifts from the settings', fails here."""
+def test_every_estimator_setting_is_a_knob_with_the_settings_default() -> None:
+    """The `estimator` node is made from `EstimatorSettings`: a knob per field, named as the
+    paper names it where the field says so, its default the field's."""
     import dataclasses
 
-    from comexp.experiment.config import SETTINGS_FIELDS, EstimatorConfig
+    from comexp.experiment.config import EstimatorConfig
     from comexp.method.estimator import EstimatorSettings
 
-    fields = [f.name for f in dataclasses.fields(EstimatorSettings)]
-    assert sorted(SETTINGS_FIELDS.values()) == sorted(fields)
-    assert sorted(SETTINGS_FIELDS) == sorted(f.name for f in dataclasses.fields(EstimatorConfig))
+    knobs = [f.name for f in dataclasses.fields(EstimatorConfig)]
+    fields = dataclasses.fields(EstimatorSettings)
+    assert knobs == [f.metadata.get("knob", f.name) for f in fields]
+    assert {"theta_T", "C_bw", "w", "n_push", "method"} <= set(knobs)
     assert config_module.estimator_settings(EstimatorConfig()) == EstimatorSettings()
 
 
 def test_the_user_facing_config_carries_no_test_hooks() -> None:
-    """The fake runner and simulator of the tests come through the environment
-    (COMEXP_RUNNER, COMEXP_SIMULATOR_FACTORY), not through `execution.*`."""
+    """The tests' fakes come in as a user's own would (a backend in a config directory, a
+    runner handed to the pool in Python), not through `execution.*`."""
     exp = to_experiment(_compose())
     assert not {"runner", "simulator_factory"} & set(vars(exp.execution))
 
@@ -411,14 +414,14 @@ def test_defaults_are_written_once() -> None:
     Hydra's settings); the report labels and the grid take theirs from the config classes."""
     import yaml
 
-    from comexp.experiment.config import CameraConfig, EpisodeConfig
+    from comexp.episode.task import CameraSettings, EpisodeSettings
     from comexp.results.reports import PROTOCOL_DEFAULTS
 
     primary = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())
     assert set(primary) == {"defaults", "hydra"}, set(primary) - {"defaults", "hydra"}
     assert {
-        "mass_kg": EpisodeConfig.mass_kg,
-        "push_length_cm": EpisodeConfig.push_length_cm,
-        "recenter_beyond_cm": EpisodeConfig.recenter_beyond_cm,
-        "camera_fps": CameraConfig.fps,
+        "mass_kg": EpisodeSettings.mass_kg,
+        "push_length_cm": EpisodeSettings.push_length_cm,
+        "recenter_beyond_cm": EpisodeSettings.recenter_beyond_cm,
+        "camera_fps": CameraSettings.fps,
     } == PROTOCOL_DEFAULTS

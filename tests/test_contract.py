@@ -16,10 +16,13 @@ from functools import cache
 import numpy as np
 import pytest
 
+from comexp.experiment.config import make_simulator
 from comexp.experiment.objects import load_objects, object_names
-from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
-from comexp.method.geometry import box_object, prism_object
-from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PushCommand, SceneSpec
+from comexp.method.frames import Pose2D
+from comexp.sim.bodies import box_object, prism_object
+from comexp.sim.contact import contact_push
+from comexp.sim.protocol import push
+from comexp.sim.scene import GRAVITY_M_S2, FloorSpec, PushCommand, PushStatus, SceneSpec
 
 BACKENDS = ["planar", "pybullet", "mujoco"]
 PUSH_LENGTH_M = 0.03
@@ -241,7 +244,7 @@ def _object_push(sim, obj, mu_floor, yaw_rad, contact_obj, normal_obj, speed, sh
     if shift:
         start = np.asarray(cmd.start_xy_m) - shift * n_w
         cmd = type(cmd)(tuple(start), cmd.direction_xy, cmd.travel_m + shift, cmd.speed_m_s)
-    out = sim.push(cmd)
+    out = push(sim, cmd)
     assert out.status is PushStatus.OK and out.contact_made, out
     return out.rotation_deg
 
@@ -396,7 +399,7 @@ def test_a_tall_object_tips_and_the_push_says_so(sim, speed, request):
     tall = box_object(0.02, 0.02, 0.12, mu_pusher=1.0)
     scene = SceneSpec(FloorSpec(1.0, 1.0), tall)
     sim.build(scene)
-    out = sim.push(contact_push((-0.01, 0.0), (1.0, 0.0), PUSH_LENGTH_M, speed, 0.005))
+    out = push(sim, contact_push((-0.01, 0.0), (1.0, 0.0), PUSH_LENGTH_M, speed, 0.005))
     assert out.status is PushStatus.TIPPED, (
         f"{sim.name}: {out.status.value}, {out.max_tilt_deg:.2f}"
     )
@@ -432,7 +435,7 @@ TIPPING_CASES = {
 def _tipping_push(sim, case: str, speed: float):
     make, face_x, expected = TIPPING_CASES[case]
     sim.build(SceneSpec(FloorSpec(1.0, 1.0), make()))
-    out = sim.push(contact_push((face_x, 0.0), (1.0, 0.0), PUSH_LENGTH_M, speed, 0.005))
+    out = push(sim, contact_push((face_x, 0.0), (1.0, 0.0), PUSH_LENGTH_M, speed, 0.005))
     return out, expected
 
 
@@ -470,7 +473,7 @@ def _push_left_face(sim, scene: SceneSpec, y_contact: float, speed: float):
     half_len = max(p[0] for p in scene.obj.outline_m)
     contact = (scene.initial_pose.x_m - half_len, scene.initial_pose.y_m + y_contact)
     cmd = contact_push(contact, (1.0, 0.0), PUSH_LENGTH_M, speed, scene.pusher.radius_m)
-    return sim.push(cmd)
+    return push(sim, cmd)
 
 
 def test_iso_floor_free_slide_does_not_depend_on_yaw(sim):
@@ -555,7 +558,7 @@ def test_many_sided_object_at_rest_settles_at_once(sim):
     pybullet keeps 4 of its bottom corners in the floor contact and rocks it by ~0.02 deg; the
     old 3D settle test then waited 0.83 s here, and 5 s (not_settled) in longer episodes.
     """
-    from comexp.experiment.episode import EpisodeSpec, build_scene
+    from comexp.episode.task import EpisodeSpec, build_scene
     from comexp.experiment.objects import com_points, load_objects
 
     obj = next(o for o in load_objects().values() if o.name == "ellipse_12x7")
@@ -572,7 +575,7 @@ def test_many_sided_object_at_rest_settles_at_once(sim):
         izz_scale=1.0,
     )
     sim.build(build_scene(spec))
-    out = sim.push(PushCommand((0.2, 0.2), (1.0, 0.0), 0.01, 0.04))
+    out = push(sim, PushCommand((0.2, 0.2), (1.0, 0.0), 0.01, 0.04))
     assert out.status is PushStatus.OK and not out.contact_made
     # 0.25 s travel + 0.05 s hold + 0.06 s retract (pybullet: 0.36 s); longer = rest missed
     assert out.sim_time_s < 0.4, f"{sim.name}: took {out.sim_time_s:.2f} s to settle"
@@ -602,7 +605,7 @@ def test_leaving_the_view_is_reported(sim):
 def test_the_view_shortcut_changes_no_outcome(sim, monkeypatch):
     """`surely_in_view` only spares the exact check: the same pushes (one of them leaving the
     view) give the same outcomes, to the bit, with it switched off."""
-    from comexp.experiment import interface as simulator_mod
+    from comexp.sim import protocol as simulator_mod
 
     def pushes():
         outs = []
@@ -621,8 +624,10 @@ def test_the_view_shortcut_changes_no_outcome(sim, monkeypatch):
 def test_surely_in_view_never_contradicts_the_exact_check():
     """Random objects, poses over and beyond the image's edge: whenever the cheap test says
     "inside", every corner projects inside, and the verdict with it is the verdict without."""
-    from comexp.experiment.simulator import classify_state, outline_radius_m, surely_in_view
-    from comexp.method.scene import CameraSpec, ObjectState, SimSettings
+    from comexp.method.frames import CameraSpec
+    from comexp.sim.protocol import classify_state
+    from comexp.sim.scene import ObjectState, SimSettings
+    from comexp.sim.view import outline_radius_m, surely_in_view
 
     camera, settings = CameraSpec().model(), SimSettings()
     rng = np.random.default_rng(7)
@@ -648,8 +653,8 @@ def test_surely_in_view_never_contradicts_the_exact_check():
 def test_inside_the_sure_view_box_the_view_is_sure():
     """`surely_in_view_box`: an origin inside the box is surely in view, one a little outside
     it (beyond its inset) is not: the box is the cheap test's own region, inset."""
-    from comexp.experiment.view import surely_in_view, surely_in_view_box
-    from comexp.method.scene import CameraSpec
+    from comexp.method.frames import CameraSpec
+    from comexp.sim.view import surely_in_view, surely_in_view_box
 
     camera = CameraSpec().model()
     rng = np.random.default_rng(3)
@@ -673,6 +678,6 @@ def test_start_overlapping_object_is_refused(sim):
     scene = SceneSpec(FloorSpec(0.5, 0.5), _box())
     sim.build(scene)
     before = sim.true_pose()
-    out = sim.push(PushCommand((0.0, 0.0), (1.0, 0.0), 0.03, 0.4))
+    out = push(sim, PushCommand((0.0, 0.0), (1.0, 0.0), 0.03, 0.4))
     assert out.status is PushStatus.PATH_BLOCKED
     assert sim.true_pose() == before

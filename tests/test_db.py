@@ -16,7 +16,8 @@ import pytest
 from sqlalchemy import create_engine, inspect
 from sqlalchemy.dialects import postgresql
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec, EstimatorSettings, PushRecord
+from comexp.episode.task import EpisodeResult, EpisodeSpec, PushRecord
+from comexp.method.estimator import EstimatorSettings
 from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import episode_key
 from comexp.results.schema import EPISODES

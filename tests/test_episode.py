@@ -10,11 +10,15 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.experiment.episode import EpisodeSpec, EstimatorSettings, build_scene, run_episode
-from comexp.experiment.simulator import Frame, PushOutcome, PushStatus, Simulator, make_simulator
-from comexp.method.estimator import cross2
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeSpec, build_scene
+from comexp.experiment.config import make_simulator
+from comexp.method.estimator import EstimatorSettings, cross2
+from comexp.method.frames import DepthImage, Pose2D
 from comexp.method.rendering import render_prism_depth
-from comexp.method.scene import DepthImage, ObjectState, Pose2D, PushCommand, SceneSpec
+from comexp.sim.protocol import Frame, PushOutcome
+from comexp.sim.scene import ObjectState, PushCommand, PushStatus, SceneSpec
+from comexp.sim.simulator import Simulator
 
 BOX_CM = ((-4.0, -2.5), (4.0, -2.5), (4.0, 2.5), (-4.0, 2.5))
 TRI_CM = ((-3.67, -2.67), (5.33, -1.67), (-0.67, 4.33))  # area centroid at the origin
@@ -66,13 +70,13 @@ class KinematicSim(Simulator):
         self.deg_per_cm, self.max_turn_deg, self.moving_s = deg_per_cm, max_turn_deg, moving_s
 
     def build(self, scene: SceneSpec) -> None:
-        self.scene, self.pose = scene, scene.initial_pose  # `n` counts pushes across re-builds
+        self._scene, self.pose = scene, scene.initial_pose  # `n` counts pushes across re-builds
         self.outline = np.array(scene.obj.outline_m)
         self.com = np.array(scene.obj.com_m)
 
     def render_depth(self) -> DepthImage:
-        cam = self.scene.camera.model()
-        return render_prism_depth(cam, self.outline, self.scene.obj.height_m, self.pose)
+        cam = self._scene.camera.model()
+        return render_prism_depth(cam, self.outline, self._scene.obj.height_m, self.pose)
 
     def push(
         self,
@@ -137,18 +141,23 @@ class KinematicSim(Simulator):
     def set_object_velocity(self, linear_m_s, angular_rad_s) -> None:
         raise NotImplementedError
 
-    # `push` is replaced whole, so the protocol's primitives are never called
-    def _place_pusher(self, xy) -> None:
+    # the protocol is replaced whole (`run_kinematic`), so its primitives are never called
+    def place_pusher(self, xy) -> None:
         raise NotImplementedError
 
-    def _pusher_xy(self):
+    def pusher_xy(self):
         raise NotImplementedError
 
-    def _advance(self, targets):
+    def advance(self, targets):
         raise NotImplementedError
 
     def step(self, duration_s: float) -> None:
         pass
+
+
+def run_kinematic(spec: EpisodeSpec, sim: KinematicSim):
+    """The episode loop on ideal kinematics: `KinematicSim.push` in the push protocol's place."""
+    return run_episode(spec, sim, push=KinematicSim.push)
 
 
 # Seeds 0-7 of every case below. One episode's error is a draw from a spread, and symmetric
@@ -173,7 +182,9 @@ IDEAL_MAX_ERROR_CM = 1.5  # measured <= 1.141 (24 seeds); margin 0.36 cm
 def test_episode_on_ideal_kinematics_finds_the_com(outline, com, source):
     errors = []
     for seed in IDEAL_SEEDS:
-        res = run_episode(spec_for(outline, com, seed=seed, rotation_source=source), KinematicSim())
+        res = run_kinematic(
+            spec_for(outline, com, seed=seed, rotation_source=source), KinematicSim()
+        )
         assert res.status == "ok", (seed, res.detail)
         assert res.n_pushes == 5 and len(res.pushes) == 5
         errors.append(res.error_cm)
@@ -195,7 +206,7 @@ def test_magnitude_method_in_episodes_beats_the_paper_on_ideal_kinematics():
     errors = {}
     for method in ("paper", "magnitude"):
         runs = [
-            run_episode(spec_for(o, c, seed=s, method=method), KinematicSim())
+            run_kinematic(spec_for(o, c, seed=s, method=method), KinematicSim())
             for o, c in cases
             for s in IDEAL_SEEDS
         ]
@@ -231,8 +242,8 @@ def _check_push_records(res, outline, com) -> None:
 
 
 def test_episode_is_deterministic_and_seed_sets_the_yaw():
-    a = run_episode(spec_for(seed=3), KinematicSim())
-    b = run_episode(spec_for(seed=3), KinematicSim())
+    a = run_kinematic(spec_for(seed=3), KinematicSim())
+    b = run_kinematic(spec_for(seed=3), KinematicSim())
     assert a.est_com_cm == b.est_com_cm and a.pushes == b.pushes
     ya = build_scene(spec_for(seed=3)).initial_pose.yaw_rad
     yb = build_scene(spec_for(seed=4)).initial_pose.yaw_rad
@@ -244,7 +255,7 @@ def test_episode_is_deterministic_and_seed_sets_the_yaw():
     [PushStatus.TIPPED, PushStatus.LEFT_VIEW, PushStatus.SIM_UNSTABLE, PushStatus.NOT_SETTLED],
 )
 def test_push_failures_become_results(status):
-    res = run_episode(spec_for(), KinematicSim(fail_at=2, status=status))
+    res = run_kinematic(spec_for(), KinematicSim(fail_at=2, status=status))
     assert res.status == "failed" and res.failure == status.value
     assert res.n_pushes == 2 and res.error_cm is None
 
@@ -252,11 +263,11 @@ def test_push_failures_become_results(status):
 def test_object_is_recentred_before_it_can_leave_the_view():
     """Long slides (a 40 cm/s push on the mu 0.1 floor) would carry the object out of the
     camera's view within 5 pushes; the protocol puts it back at the centre, yaw unchanged."""
-    far = run_episode(spec_for(seed=5), KinematicSim(slide_m=0.12))
+    far = run_kinematic(spec_for(seed=5), KinematicSim(slide_m=0.12))
     assert "re-centred" in far.detail
     assert far.status == "ok" and far.n_pushes == 5, far.detail
     assert far.error_cm < 1.0  # 0.599 cm; seeds 0-23: <= 0.741 cm, every one re-centred
-    lost = run_episode(
+    lost = run_kinematic(
         replace(spec_for(seed=5), recenter_beyond_cm=0.0), KinematicSim(slide_m=0.12)
     )
     assert lost.status == "failed" and lost.failure == "left_view", lost.detail
@@ -268,13 +279,13 @@ def test_frames_unwrap_big_turns_of_a_symmetric_outline():
     frames during the push (10 fps over the 0.4 s motion: 3 frames) every turn is found.
     Seed 1 (measured): 4 of 5 pushes turn by 92-150 deg."""
     sim = dict(deg_per_cm=100.0, max_turn_deg=150.0)
-    two = run_episode(spec_for(seed=1), KinematicSim(**sim))
+    two = run_kinematic(spec_for(seed=1), KinematicSim(**sim))
     big = [p for p in two.pushes if abs(p.rotation_true_deg) > 90]
     assert big and all(p.n_frames == 0 for p in two.pushes)
     for p in big:  # aliased by the symmetry: off by 180 deg, the other sign
         assert abs(abs(p.rotation_deg - p.rotation_true_deg) - 180.0) < 2.0
         assert np.sign(p.rotation_deg) != np.sign(p.rotation_true_deg)
-    watched = run_episode(replace(spec_for(seed=1), camera_fps=10.0), KinematicSim(**sim))
+    watched = run_kinematic(replace(spec_for(seed=1), camera_fps=10.0), KinematicSim(**sim))
     assert watched.status == "ok", watched.detail
     assert any(abs(p.rotation_true_deg) > 90 for p in watched.pushes)
     for p in watched.pushes:
@@ -282,7 +293,7 @@ def test_frames_unwrap_big_turns_of_a_symmetric_outline():
         assert p.n_frames == (3 if abs(p.rotation_true_deg) > 0 else 0)
     # the aliased signs mislead the estimator: measured 4.75 cm, tracked 0.22 cm
     assert watched.error_cm < 1.0 < two.error_cm
-    oracle = run_episode(
+    oracle = run_kinematic(
         replace(spec_for(seed=1, rotation_source="oracle"), camera_fps=10.0), KinematicSim(**sim)
     )
     assert all(p.n_frames == 0 for p in oracle.pushes)  # the oracle needs no frames
@@ -293,7 +304,7 @@ def test_frame_counts_are_stored(tmp_path):
     from comexp.results.store import ResultsDB
 
     sim = KinematicSim(deg_per_cm=100.0, max_turn_deg=150.0)
-    res = run_episode(replace(spec_for(seed=1), camera_fps=10.0), sim)
+    res = run_kinematic(replace(spec_for(seed=1), camera_fps=10.0), sim)
     with ResultsDB(tmp_path / "r.db") as db:
         db.add_results(None, [res])
         (row,) = db.episodes()
@@ -304,7 +315,7 @@ def test_frame_counts_are_stored(tmp_path):
 
 
 def test_exceptions_become_error_results():
-    res = run_episode(spec_for(), KinematicSim(raise_at=1))
+    res = run_kinematic(spec_for(), KinematicSim(raise_at=1))
     assert res.status == "failed" and res.failure == "error"
     assert "engine exploded" in res.detail
 
@@ -314,7 +325,7 @@ def test_no_valid_contact_is_a_result(monkeypatch):
 
     # every contact unreachable (as for a pusher too fat for the object)
     monkeypatch.setattr(est, "reachable_contacts", lambda o, P, N, r, **k: np.zeros(len(P), bool))
-    res = run_episode(spec_for(), KinematicSim())
+    res = run_kinematic(spec_for(), KinematicSim())
     assert res.status == "failed" and res.failure == "no_valid_contact"
 
 
@@ -383,7 +394,7 @@ def test_a_recentred_push_is_flagged_in_its_path(monkeypatch):
         return original(self, path)
 
     monkeypatch.setattr(MotionEstimator, "observe_path", spy)
-    res = run_episode(spec_for(seed=5, method="motion"), KinematicSim(slide_m=0.12))
+    res = run_kinematic(spec_for(seed=5, method="motion"), KinematicSim(slide_m=0.12))
     assert res.status == "ok", res.detail
     assert len(flags) == res.n_pushes and any(flags)
     assert sum(flags) == res.detail.count("re-centred")

@@ -1,9 +1,9 @@
 """Bad episodes never poison a sweep: per-episode time limit, failure reasons stored, counted
 in the progress and the summary, and excluded from the error statistics (with the count).
 
-The fakes below are named by dotted path (`test_faults:faulty_run`) and imported by the Ray
-workers; the tests directory is put on their PYTHONPATH. The cluster faults (node, worker,
-driver killed; two sweeps on one file) are in `test_cluster.py`.
+The worker-level fakes below are runners handed to an `EpisodeWorker`; the command-line sweep
+runs the tests' backend with its scripted faults (tests/scripted_backend.py). The cluster
+faults (node, worker, driver killed; two sweeps on one file) are in `test_cluster.py`.
 """
 
 from __future__ import annotations
@@ -21,20 +21,11 @@ from pathlib import Path
 
 import pytest
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.episode.task import EpisodeResult, EpisodeSpec
+from comexp.sim.simulator import SimulatorSpec
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
-FACTORY = "test_workers:FakeSimulator"
-
-# (object, com index) -> what the fake episode does; every other episode succeeds.
-FAULTS: dict[tuple[str, int], str] = {
-    ("t_shape", 0): "tipped",
-    ("u_shape", 0): "left_view",
-    ("cross_12", 0): "no_valid_contact",
-    ("z_shape", 0): "sim_unstable",
-    ("arrow", 0): "hang",  # -> timeout
-    ("l_shape", 0): "die",  # kills its worker every time -> worker_died
-}
+FAKE = SimulatorSpec("fake", "test_workers.FakeSimulator")
 
 
 # --- fakes (imported by the workers) --------------------------------------------------------
@@ -52,29 +43,6 @@ def _ok(spec: EpisodeSpec, error_cm: float, detail: str = "") -> EpisodeResult:
         wall_s=0.0,
         detail=detail,
     )
-
-
-def faulty_run(spec: EpisodeSpec, sim: object) -> EpisodeResult:
-    """`FAULTS` decides: a physics failure as `run_episode` reports it, a hang (sleeps until
-    the time limit interrupts it), a worker that dies; else ok with error 1 + com_index cm."""
-    what = FAULTS.get((spec.object, spec.com_index))
-    if what == "hang":
-        time.sleep(3600)
-    if what == "die":
-        os._exit(1)
-    if what is not None:
-        return EpisodeResult(
-            spec=spec,
-            status="failed",
-            failure=what,
-            est_com_cm=None,
-            error_cm=None,
-            n_pushes=1,
-            pushes=(),
-            wall_s=0.0,
-            detail=f"push 0: {what}",
-        )
-    return _ok(spec, 1.0 + spec.com_index)
 
 
 def hanging_run(spec: EpisodeSpec, sim: object) -> EpisodeResult:
@@ -113,9 +81,7 @@ def _specs(*objects: str) -> list[EpisodeSpec]:
 def test_a_hanging_episode_times_out_and_the_worker_carries_on() -> None:
     from comexp.workers.actor import EpisodeWorker
 
-    w = EpisodeWorker(
-        "fake", runner="test_faults:hanging_run", simulator_factory=FACTORY, episode_timeout_s=0.5
-    )
+    w = EpisodeWorker(FAKE, runner=hanging_run, episode_timeout_s=0.5)
     before = signal.getsignal(signal.SIGALRM)
     t0 = time.monotonic()
     out = w.run_batch(_specs("box", "hang", "box"))
@@ -135,7 +101,7 @@ def test_a_hanging_episode_times_out_and_the_worker_carries_on() -> None:
 def test_no_time_limit_when_disabled() -> None:
     from comexp.workers.actor import EpisodeWorker
 
-    w = EpisodeWorker("fake", runner="test_faults:hanging_run", simulator_factory=FACTORY)
+    w = EpisodeWorker(FAKE, runner=hanging_run)
     assert w.episode_timeout_s is None and w._watchdog is None
     assert w.run_one(_specs("box")[0]).status == "ok"
 
@@ -146,9 +112,8 @@ def test_a_hang_inside_c_code_ends_the_worker_process() -> None:
     code = (
         f"import sys; sys.path.insert(0, {TESTS_DIR!r})\n"
         "from comexp.workers.actor import EpisodeWorker\n"
-        "from test_faults import _specs\n"
-        "w = EpisodeWorker('fake', runner='test_faults:c_hanging_run',"
-        f" simulator_factory={FACTORY!r}, episode_timeout_s=0.5, kill_grace_s=0.5)\n"
+        "from test_faults import FAKE, _specs, c_hanging_run\n"
+        "w = EpisodeWorker(FAKE, runner=c_hanging_run, episode_timeout_s=0.5, kill_grace_s=0.5)\n"
         "print(w.run_one(_specs('box')[0]).status, flush=True)\n"
         "w.run_one(_specs('hang')[0])\n"
         "print('not reached', flush=True)\n"
@@ -182,11 +147,12 @@ def _table_row(markdown: str, first_cell: str) -> list[str]:
 
 
 def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path, local_ray, capsys) -> None:
-    """One sweep where 6 of 14 episodes fail, one for each reason (physics reasons as
-    `run_episode` reports them, a hang -> timeout, a worker killer -> worker_died). The sweep
-    completes; the failures are stored with their reason, counted in progress and summary,
-    and the error tables use only the 8 ok episodes and say how many were left out."""
-    from test_cli import comexp_in_process, rows
+    """One sweep on the tests' backend with its faults on, where 12 of 14 episodes fail, two
+    for each reason (physics reasons as the protocol reports them, a hang -> timeout, a worker
+    killer -> worker_died). The sweep completes; the failures are stored with their reason,
+    counted in progress and summary, and the error tables use only the 2 ok episodes (real
+    planar episodes) and say how many were left out."""
+    from test_cli import SCRIPTED, comexp_in_process, rows
 
     from comexp.cli.query import main as comexp_db
 
@@ -202,8 +168,8 @@ def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path, local_r
         "execution.batch_size=2",
         "execution.max_retries=0",
         "execution.episode_timeout_s=1",
-        COMEXP_RUNNER="test_faults:faulty_run",
-        COMEXP_SIMULATOR_FACTORY=FACTORY,
+        *SCRIPTED,
+        "+backend.options.faults=true",
     )
     out = r.stdout + r.stderr
     assert r.returncode == 0, out
@@ -211,43 +177,50 @@ def test_failed_episodes_are_stored_counted_and_excluded(tmp_path: Path, local_r
     db = tmp_path / "results" / "f.db"
     got = rows(db, "select failure, count(*) from episodes where status='failed' group by 1")
     assert dict(got) == {
-        "tipped": 1,
-        "left_view": 1,
-        "no_valid_contact": 1,
-        "sim_unstable": 1,
-        "timeout": 1,
-        "worker_died": 1,
+        "tipped": 2,
+        "left_view": 2,
+        "not_settled": 2,
+        "sim_unstable": 2,
+        "timeout": 2,
+        "worker_died": 2,
     }
     assert rows(db, "select count(*), count(distinct episode_key) from episodes") == [(14, 14)]
     assert rows(
         db, "select count(*) from episodes where status='failed' and error_cm is not null"
     ) == [(0,)]
-    assert rows(db, "select count(*) from episodes where status='ok'") == [(8,)]
+    ((n_ok, mean, lo, hi),) = rows(
+        db,
+        "select count(*), avg(error_cm), min(error_cm), max(error_cm) from episodes "
+        "where status='ok'",
+    )
+    assert n_ok == 2
     # progress and the job's summary line count them
-    assert "14/14 done, 6 failed" in out
-    assert "ran 14 episodes" in out and "(6 failed: " in out
-    for reason in ("tipped 1", "timeout 1", "worker_died 1", "no_valid_contact 1"):
+    assert "14/14 done, 12 failed" in out
+    assert "ran 14 episodes" in out and "(12 failed: " in out
+    for reason in ("tipped 2", "timeout 2", "worker_died 2", "not_settled 2"):
         assert reason in out
-    # the tables: statistics of the 8 ok episodes (errors 1, 2 per object), 6 excluded
+    # the tables: statistics of the 2 ok episodes, 12 excluded
     # `comexp-db` through its main() (its console script is run in test_dbcli.py)
     capsys.readouterr()
     code = comexp_db(["--db", str(db), "table"])
     t = capsys.readouterr()
     assert code == 0, t.err
-    assert "6 failed episode(s) excluded" in t.out, t.out
-    for reason in ("left_view 1", "sim_unstable 1", "timeout 1", "worker_died 1"):
+    assert "12 failed episode(s) excluded" in t.out, t.out
+    for reason in ("left_view 2", "sim_unstable 2", "timeout 2", "worker_died 2"):
         assert reason in t.out
     cells = _table_row(t.out, "**all**")
-    # std is the sample std (ddof = 1): seven 2.0 and one 1.0 -> sqrt(0.875 / 7) = 0.354
-    assert cells == ["**all**", "8", "1.875", "0.354", "2.000", "1.000", "6"], t.out
-    assert _table_row(t.out, "l_shape")[-1] == "1"  # per object too
+    assert cells[:2] == ["**all**", "2"] and cells[-1] == "12", t.out
+    assert [float(c) for c in (cells[2], cells[4], cells[5])] == pytest.approx(
+        [mean, hi, lo], abs=5e-4
+    )
+    assert _table_row(t.out, "l_shape")[-1] == "2"  # per object too
     # the job's own report in its output folder says the same
     (report,) = (tmp_path / "results" / "runs").glob("*/summary.md")
-    assert "6 failed episode(s) excluded" in report.read_text()
+    assert "12 failed episode(s) excluded" in report.read_text()
     code = comexp_db(["--db", str(db), "summary"])
     s = capsys.readouterr()
     assert code == 0, s.err
-    assert _table_row(s.out, "pybullet")[1:4] == ["8", "6", "1.875"], s.out
+    assert _table_row(s.out, "scripted")[1:3] == ["2", "12"], s.out
 
 
 # --- the default local Ray: the driver killed -----------------------------------------------------
@@ -259,16 +232,13 @@ def test_a_killed_local_driver_is_resumed_and_leaves_nothing_running(tmp_path: P
     command resumes (only the missing episodes), a third run stores nothing, the file is
     sound. Ray's fate sharing takes its gcs and raylet down with the driver; its agents can
     linger (Ray 2.60), in the driver's process group, which is how they are cleaned up."""
-    from test_cli import _command, _env, rows
+    from test_cli import SCRIPTED, _command, _env, rows
 
     ray_tmp = tempfile.mkdtemp(prefix="cxf-", dir="/tmp")  # Ray's temp dir: ours alone
-    env = _env(
-        FAKE_RUN_SLEEP_S="0.25",
-        TMPDIR=ray_tmp,
-        COMEXP_RUNNER="test_workers:fake_run",
-        COMEXP_SIMULATOR_FACTORY=FACTORY,
-    )
+    env = _env(TMPDIR=ray_tmp)
     args = [
+        *SCRIPTED,
+        "+backend.options.build_sleep_s=0.25",
         "grid.coms_per_object=2",
         "grid.izz_scales=[1]",
         "floor.mu=[1.0]",

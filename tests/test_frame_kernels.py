@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from comexp.experiment.objects import load_objects
+from comexp.method.frames import CameraSpec, DepthImage, Pose2D
 from comexp.method.geometry import centroid as polygon_centroid
 from comexp.method.observation import (
     MIN_HEIGHT_M,
@@ -31,7 +32,6 @@ from comexp.method.rendering import (
     render_prism_depth_numpy,
     render_prism_window_depth,
 )
-from comexp.method.scene import CameraSpec, DepthImage, Pose2D
 from comexp.method.tracking import PoseTracker, _icp_kernel, _median_kernel
 
 CAM = CameraSpec().model()

@@ -10,16 +10,15 @@ import shapely
 from shapely.geometry import MultiPoint, Polygon
 
 from comexp.method.geometry import (
-    box_object,
     centroid,
     convex_decomposition,
     is_convex,
     min_width,
-    prism_object,
     second_moments,
     signed_area,
     simplify,
 )
+from comexp.sim.bodies import box_object, prism_object
 
 NONCONVEX = {
     "L": [(0, 0), (10, 0), (10, 4), (4, 4), (4, 8), (0, 8)],
@@ -209,7 +208,7 @@ def test_pose_maps_points_ccw_and_back_and_reads_only_x_and_y():
     """`Pose2D.to_world` / `to_object` (filled in place since 5952407): a quarter turn takes
     object +x to world +y (counter-clockwise positive), the two are inverse on any (..., 2)
     batch, and points with more columns map by their x and y, as (..., 2) results."""
-    from comexp.method.scene import Pose2D
+    from comexp.method.frames import Pose2D
 
     pose = Pose2D(0.1, -0.2, math.pi / 2)
     assert np.allclose(pose.to_world(np.array([1.0, 0.0])), [0.1, 0.8])

@@ -12,8 +12,16 @@ from pathlib import Path
 import pytest
 from test_episode import spec_for
 
-from comexp.experiment.episode import EpisodeSpec
+from comexp.episode.task import EpisodeSpec
+from comexp.sim.simulator import SimulatorSpec
 from comexp.workers import kernel_cache
+
+PLANAR = SimulatorSpec("planar", "comexp.backends.planar_sim.PlanarSimulator")
+
+
+def _pybullet(floor_friction: str) -> SimulatorSpec:
+    target = "comexp.backends.pybullet_sim.PybulletSimulator"
+    return SimulatorSpec("pybullet", target, {"floor_friction": floor_friction})
 
 
 def planar_spec(n_push: int = 1) -> EpisodeSpec:
@@ -23,14 +31,14 @@ def planar_spec(n_push: int = 1) -> EpisodeSpec:
 
 @pytest.fixture
 def fresh(monkeypatch):
-    """A process that has warmed nothing yet, outside the test seams."""
+    """A process that has warmed nothing yet, with Numba on."""
     monkeypatch.setattr(kernel_cache, "_warmed", set())
-    for k in ("COMEXP_RUNNER", "COMEXP_SIMULATOR_FACTORY", "NUMBA_DISABLE_JIT"):
+    for k in ("NUMBA_DISABLE_JIT",):
         monkeypatch.delenv(k, raising=False)
     return monkeypatch
 
 
-def test_the_warm_up_runs_once_per_backend_and_options_and_not_for_the_seams(fresh):
+def test_the_warm_up_runs_once_per_backend_and_options_and_not_for_plugins(fresh):
     children: list[tuple[list[str], bytes]] = []
 
     class Child:  # a child that ran the episode it was sent
@@ -45,18 +53,17 @@ def test_the_warm_up_runs_once_per_backend_and_options_and_not_for_the_seams(fre
 
     fresh.setattr(kernel_cache.subprocess, "Popen", Child)
     spec = planar_spec()
-    assert kernel_cache.warm_kernel_cache("planar", spec)
-    assert not kernel_cache.warm_kernel_cache("planar", spec)  # this process has them
-    assert kernel_cache.warm_kernel_cache("pybullet", spec, {"floor_friction": "model"})
-    assert kernel_cache.warm_kernel_cache("pybullet", spec, {"floor_friction": "native"})
+    assert kernel_cache.warm_kernel_cache(PLANAR, spec)
+    assert not kernel_cache.warm_kernel_cache(PLANAR, spec)  # this process has them
+    assert kernel_cache.warm_kernel_cache(_pybullet("model"), spec)
+    assert kernel_cache.warm_kernel_cache(_pybullet("native"), spec)
     assert [c[0][-2:] for c in children] == [["-m", "comexp.workers.kernel_cache"]] * 3
     assert children[0][0][0] == sys.executable
     fresh.setattr(kernel_cache, "_warmed", set())
-    fresh.setenv("COMEXP_RUNNER", "tests.fakes:run")  # a fake runner compiles nothing
-    assert not kernel_cache.warm_kernel_cache("planar", spec)
-    fresh.delenv("COMEXP_RUNNER")
+    plugin = SimulatorSpec("toy", "my_backends.ToyPlanar")  # its kernels are not known here
+    assert not kernel_cache.warm_kernel_cache(plugin, spec)
     fresh.setenv("NUMBA_DISABLE_JIT", "1")  # nothing to compile; the episode would crawl
-    assert not kernel_cache.warm_kernel_cache("planar", spec)
+    assert not kernel_cache.warm_kernel_cache(PLANAR, spec)
     assert len(children) == 3
 
 
@@ -70,9 +77,9 @@ def test_ray_starts_while_the_child_loads_the_kernels(fresh):
         child = [p for p in _children() if "comexp.workers.kernel_cache" in p]
         started.append(len(child))
 
-    assert kernel_cache.warm_kernel_cache("planar", spec, meanwhile=meanwhile)
+    assert kernel_cache.warm_kernel_cache(PLANAR, spec, meanwhile=meanwhile)
     assert started == [1]  # the child was running
-    assert not kernel_cache.warm_kernel_cache("planar", spec, meanwhile=meanwhile)
+    assert not kernel_cache.warm_kernel_cache(PLANAR, spec, meanwhile=meanwhile)
     assert started == [1, 0]  # warmed already: no child, Ray still started
 
     def fails() -> None:
@@ -80,7 +87,7 @@ def test_ray_starts_while_the_child_loads_the_kernels(fresh):
 
     fresh.setattr(kernel_cache, "_warmed", set())
     with pytest.raises(RuntimeError, match="no Ray"):
-        kernel_cache.warm_kernel_cache("planar", spec, meanwhile=fails)
+        kernel_cache.warm_kernel_cache(PLANAR, spec, meanwhile=fails)
     assert not [p for p in _children() if "comexp.workers.kernel_cache" in p]
 
 
@@ -102,15 +109,16 @@ def _children() -> list[str]:
 def test_a_failing_warm_up_is_a_warning_naming_the_child_s_error(fresh, caplog):
     spec = planar_spec()
     with caplog.at_level(logging.WARNING, logger="comexp.pool"):
-        assert not kernel_cache.warm_kernel_cache("no_such_backend", spec)
+        bad = SimulatorSpec("planar", PLANAR.target, {"no_such_option": 1})
+        assert not kernel_cache.warm_kernel_cache(bad, spec)
     (record,) = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert "kernel warm-up failed (exit 1" in record.getMessage()
-    assert "no_such_backend" in record.getMessage()
+    assert "no_such_option" in record.getMessage()
 
 
 def test_an_overrunning_warm_up_is_ended_with_a_warning(fresh, caplog):
     with caplog.at_level(logging.WARNING, logger="comexp.pool"):
-        assert not kernel_cache.warm_kernel_cache("planar", planar_spec(), timeout_s=0.05)
+        assert not kernel_cache.warm_kernel_cache(PLANAR, planar_spec(), timeout_s=0.05)
     assert any("took over" in r.getMessage() for r in caplog.records)
 
 
@@ -121,14 +129,15 @@ def test_after_the_warm_up_a_fresh_process_compiles_nothing(fresh, tmp_path: Pat
     compile of every kernel."""
     fresh.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba"))
     spec = planar_spec(n_push=2)
-    assert kernel_cache.warm_kernel_cache("planar", spec)
+    assert kernel_cache.warm_kernel_cache(PLANAR, spec)
     assert list((tmp_path / "numba").rglob("*.nbi"))
     probe = f"""
 import pickle, sys
 from numba.core.dispatcher import Dispatcher
+from comexp.sim.simulator import SimulatorSpec
 from comexp.workers.kernel_cache import _run_one_episode
 spec = pickle.loads({pickle_bytes(spec)!r})
-_run_one_episode("planar", {{}}, spec)
+_run_one_episode(SimulatorSpec("planar", {PLANAR.target!r}), spec)
 hits = misses = 0
 for name, mod in list(sys.modules.items()):
     if name.startswith("comexp"):

@@ -1,12 +1,13 @@
-"""The package reads as the architecture: one room per concern, the short module names the
-README documents as thin re-export modules (the very objects of their room, no copies, no import
-hook), the entry points and the config tree where pyproject says."""
+"""The package reads as it runs: one name per thing (no module only re-exports another), rooms
+by concern with the driver/worker line drawn (the episode side imports no Hydra and no driver
+module), an import graph drawn from the code's own imports with no circle and no import running
+back up, imports at the top of modules, few long functions, the entry points and the config
+tree where pyproject says."""
 
 from __future__ import annotations
 
 import ast
 import importlib
-import importlib.util
 import re
 import subprocess
 import sys
@@ -18,120 +19,202 @@ import pytest
 import comexp
 
 ROOT = Path(__file__).resolve().parents[1]
-ROOMS = {
-    "method": {
-        "estimator",
-        "geometry",
-        "observation",
-        "perception",
-        "rendering",
-        "scene",
-        "tracking",
-    },
-    "experiment": {
-        "config",
-        "contact",
-        "episode",
-        "grid",
-        "interface",
-        "objects",
-        "registry",
-        "simulator",
-        "task",
-        "view",
-    },
-    "cli": {"run", "query"},
-}
-
-
-def test_top_level_holds_only_the_package_and_its_rooms():
-    top = {p.name for p in (ROOT / "comexp").iterdir() if not p.name.startswith((".", "__pyc"))}
-    shorts = {f"{m.rpartition('.')[2]}.py" for m in SHORT}
-    assert top == {"__init__.py", "method", "experiment", "results", "cli"} | shorts
-    for room, modules in ROOMS.items():
-        files = {p.stem for p in (ROOT / "comexp" / room).glob("*.py")} - {"__init__"}
-        assert modules <= files, room
-
-
-# the short names the README and docs use -> the module in its room they re-export
-SHORT = {
-    "comexp.estimator": "comexp.method.estimator",
-    "comexp.perception": "comexp.method.perception",
-    "comexp.scene": "comexp.method.scene",
-    "comexp.objects": "comexp.experiment.objects",
-    "comexp.simulator": "comexp.experiment.simulator",
-    "comexp.reports": "comexp.results.reports",
-}
+# the rooms, top floor first: a module imports only from its own room or a room below it
+FLOORS = [
+    ("cli", "api"),
+    ("experiment",),
+    ("workers", "real"),
+    ("results",),
+    ("episode",),
+    ("backends",),
+    ("sim",),
+    ("method",),
+]
+# the episode side: what a Ray worker imports to run an episode
+EPISODE_SIDE = ("episode", "backends", "sim", "method")
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 FILE_NAMES = {"comexp.log"}  # Hydra's job log, written `comexp.log` in the docs: not a name
+PACKAGE_DIRS = ("comexp", "backends", "workers")
 
 
-def test_the_short_names_are_the_re_export_modules():
-    assert {f"comexp.{n}" for n in comexp.SHORT_MODULES} == set(SHORT)
-    shorts = {p.stem for p in (ROOT / "comexp").glob("*.py")} - {"__init__"}
-    assert {f"comexp.{n}" for n in shorts} == set(SHORT)
+def _modules() -> dict[str, Path]:
+    """Every module of the package by its import name (backends/ and workers/ live in the
+    comexp namespace, as pyproject maps them)."""
+    out = {}
+    for folder in PACKAGE_DIRS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            if parts[0] != "comexp":
+                parts = ["comexp", *parts]
+            out[".".join(parts)] = path
+    return out
 
 
-@pytest.mark.parametrize("short, real", sorted(SHORT.items()))
-def test_a_short_name_re_exports_the_very_objects_of_its_room(short, real):
-    mod, room = importlib.import_module(short), importlib.import_module(real)
-    assert mod.__all__, short
-    for name in mod.__all__:
-        assert getattr(mod, name) is getattr(room, name), f"{short}.{name}"
-    assert getattr(comexp, short.rpartition(".")[2]) is mod
-    assert room.__spec__.name == real  # the real module keeps its own name
-    first = (mod.__doc__ or "").splitlines()[0]
-    assert f"`{real}`" in first, f"{short}: the docstring names the module it re-exports"
+MODULES = _modules()
 
 
-# modules that were split by job, and the names their old paths keep re-exporting (users'
-# code, notebooks and bench scripts import them there): old module -> {name: real module}
-SPLIT = {
-    "comexp.method.perception": {
-        "observe": "comexp.method.observation",
-        "perceive_first": "comexp.method.observation",
-        "mask_pusher": "comexp.method.observation",
-        "observe_boundary": "comexp.method.observation",
-        "PerceptionError": "comexp.method.observation",
-        "PoseTracker": "comexp.method.tracking",
-        "PoseFit": "comexp.method.tracking",
-        "render_prism_depth": "comexp.method.rendering",
-        "render_prism_depth_numpy": "comexp.method.rendering",
-    },
-    "comexp.experiment.simulator": {
-        "Simulator": "comexp.experiment.interface",
-        "PushOutcome": "comexp.experiment.interface",
-        "PushStatus": "comexp.experiment.interface",
-        "Frame": "comexp.experiment.interface",
-        "at_rest": "comexp.experiment.interface",
-        "classify_state": "comexp.experiment.interface",
-        "make_simulator": "comexp.experiment.registry",
-        "physics_identity": "comexp.experiment.registry",
-        "backend_names": "comexp.experiment.registry",
-        "BACKENDS": "comexp.experiment.registry",
-        "object_window_px": "comexp.experiment.view",
-        "crop_camera": "comexp.experiment.view",
-        "surely_in_view": "comexp.experiment.view",
-        "contact_push": "comexp.experiment.contact",
-        "pusher_contact_height_m": "comexp.experiment.contact",
-        "point_polygon_distance": "comexp.experiment.contact",
-    },
-    "comexp.experiment.episode": {
-        "EpisodeSpec": "comexp.experiment.task",
-        "EpisodeResult": "comexp.experiment.task",
-        "PushRecord": "comexp.experiment.task",
-        "build_scene": "comexp.experiment.task",
-        "initial_yaw_rad": "comexp.experiment.task",
-    },
-}
+def _room(module: str) -> str:
+    """A module's room: the folder below `comexp` (`comexp.api` is a room of its own)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
 
 
-@pytest.mark.parametrize("old", sorted(SPLIT))
-def test_a_split_module_keeps_its_old_names(old):
-    mod = importlib.import_module(old)
-    for name, real in SPLIT[old].items():
-        assert getattr(mod, name) is getattr(importlib.import_module(real), name), name
-        assert name in mod.__all__, f"{old}.__all__ lacks {name}"
+def _floor(room: str) -> int:
+    for i, rooms in enumerate(FLOORS):
+        if room in rooms:
+            return i
+    raise AssertionError(f"room {room!r} is on no floor of the house: add it to FLOORS")
+
+
+def _imports(path: Path, *, top_level_only: bool) -> list[tuple[str, int, bool]]:
+    """(imported comexp module, line, at the module's top level) of one file."""
+    tree = ast.parse(path.read_text())
+    top = {id(n) for n in tree.body}
+    out = []
+    for node in ast.walk(tree):
+        at_top = id(node) in top
+        if top_level_only and not at_top:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.level:
+            base = _package_of(path)
+            mod = ".".join(base.split(".")[: len(base.split(".")) - node.level + 1])
+            mod = f"{mod}.{node.module}" if node.module else mod
+            names = [f"{mod}.{a.name}" for a in node.names]
+            out += [(n if n in MODULES else mod, node.lineno, at_top) for n in names]
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("comexp"):
+            names = [f"{node.module}.{a.name}" for a in node.names]
+            out += [(n if n in MODULES else node.module, node.lineno, at_top) for n in names]
+        elif isinstance(node, ast.Import):
+            out += [
+                (a.name, node.lineno, at_top) for a in node.names if a.name.startswith("comexp")
+            ]
+    return out
+
+
+def _package_of(path: Path) -> str:
+    name = next(m for m, p in MODULES.items() if p == path)
+    return name if path.name == "__init__.py" else name.rpartition(".")[0]
+
+
+def _graph() -> dict[str, set[str]]:
+    """module -> the comexp modules it imports (at its top level)."""
+    graph = {}
+    for mod, path in MODULES.items():
+        graph[mod] = {m for m, _, _ in _imports(path, top_level_only=True) if m in MODULES}
+    return graph
+
+
+def test_every_room_is_on_a_floor():
+    rooms = {_room(m) for m in MODULES} - {""}
+    for room in rooms:
+        _floor(room)
+
+
+def test_no_module_only_re_exports_another():
+    """One name per thing: every module defines something of its own."""
+    bad = []
+    for mod, path in MODULES.items():
+        if path.name == "__init__.py":
+            continue
+        body = [
+            n
+            for n in ast.parse(path.read_text()).body
+            if not isinstance(n, ast.Import | ast.ImportFrom | ast.Expr)
+            and not (
+                isinstance(n, ast.Assign)
+                and [t.id for t in n.targets if isinstance(t, ast.Name)] == ["__all__"]
+            )
+        ]
+        if not body:
+            bad.append(mod)
+    assert not bad, f"modules that only re-export others: {bad}"
+
+
+def test_a_package_init_defines_no_names_of_its_submodules():
+    """A room's `__init__` says what the room is; it re-exports nothing (the package's own
+    `comexp/__init__` gives the notebook API by name, imported on first use)."""
+    for mod, path in MODULES.items():
+        if path.name != "__init__.py" or mod == "comexp":
+            continue
+        tree = ast.parse(path.read_text())
+        assert all(isinstance(n, ast.Expr) for n in tree.body), f"{mod}: a docstring only"
+
+
+def test_no_import_circle():
+    graph = _graph()
+    seen: dict[str, int] = {}  # 1: on the path, 2: done
+    stack: list[str] = []
+
+    def visit(m: str) -> None:
+        seen[m] = 1
+        stack.append(m)
+        for n in sorted(graph[m]):
+            if seen.get(n) == 1:
+                raise AssertionError(" -> ".join(stack[stack.index(n) :] + [n]))
+            if n not in seen:
+                visit(n)
+        stack.pop()
+        seen[m] = 2
+
+    for m in sorted(graph):
+        if m not in seen:
+            visit(m)
+
+
+def test_no_import_runs_back_up():
+    """A module imports from its own room or a room below: the house reads top down."""
+    bad = []
+    for mod, deps in _graph().items():
+        for dep in deps:
+            a, b = _room(mod), _room(dep)
+            if a and b and a != b and _floor(b) < _floor(a):
+                bad.append(f"{mod} -> {dep}")
+    assert not bad, "imports running back up: " + ", ".join(sorted(bad))
+
+
+def test_imports_are_at_the_top_of_modules():
+    """A walk from the job to the episode loop is never lost at a function-local import; a
+    deferred import says why (a measured start-up cost) on its line or the line above."""
+    bad = []
+    for _mod, path in MODULES.items():
+        lines = path.read_text().splitlines()
+        for dep, line, at_top in _imports(path, top_level_only=False):
+            if at_top:
+                continue
+            said = " ".join(lines[max(0, line - 2) : line])
+            if "start-up" not in said and "first use" not in said:
+                bad.append(f"{path.relative_to(ROOT)}:{line} {dep}")
+    assert not bad, "function-local imports of comexp: " + ", ".join(bad)
+
+
+def test_the_episode_side_imports_no_hydra_and_no_driver_module():
+    """What a Ray worker imports to run an episode: `comexp.episode.loop`, the backends, and
+    everything they import, in a fresh interpreter."""
+    code = (
+        "import sys\n"
+        "import comexp.episode.loop, comexp.backends.planar_sim, comexp.backends.pybullet_sim\n"
+        "import comexp.workers.actor\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf', 'pandas',"
+        " 'sqlalchemy', 'matplotlib') or m.startswith(('comexp.experiment', 'comexp.results',"
+        " 'comexp.cli', 'comexp.api')))\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_no_patching_of_third_party_internals():
+    """The package sets nothing on other packages' modules or private names: no
+    `module.attr = ...` on an imported third-party module, no `ray._private`/`ray._raylet`, no
+    replaced logging record factory."""
+    bad = []
+    for _mod, path in MODULES.items():
+        text = path.read_text()
+        for needle in ("ray._private", "ray._raylet", "setLogRecordFactory"):
+            if needle in text:
+                bad.append(f"{path.relative_to(ROOT)}: {needle}")
+    assert not bad, bad
 
 
 def test_every_module_names_its_one_job_first():
@@ -149,7 +232,7 @@ def test_no_import_hook():
     """Plain imports: nothing of comexp's in the import system (IDEs, type checkers and
     readers follow every name)."""
     code = (
-        "import sys, comexp, comexp.estimator, comexp.reports\n"
+        "import sys, comexp, comexp.method.estimator, comexp.results.reports\n"
         "hooks = [f for f in sys.meta_path if type(f).__module__.startswith('comexp')]\n"
         "assert not hooks, hooks\n"
     )
@@ -172,7 +255,7 @@ def _resolve(dotted: str) -> object:
 
 def test_names_the_docs_use_resolve():
     """Every dotted `comexp.` name and `from comexp... import <names>` of the README and docs/
-    names something that exists (the short names among them)."""
+    names something that exists."""
     names = set()
     for doc in DOCS:
         text = doc.read_text()
@@ -188,20 +271,16 @@ def test_names_the_docs_use_resolve():
         except (ImportError, AttributeError) as e:
             bad.append(f"{where}: {dotted} ({e})")
     assert not bad, "\n".join(bad)
-    shorts = {d.split(".")[1] for _, d in names} & set(comexp.SHORT_MODULES)
-    assert shorts == set(comexp.SHORT_MODULES), "the docs use every short name"
 
 
-def test_documented_names_in_a_fresh_interpreter():
+def test_the_notebook_api_and_the_robot_library_in_a_fresh_interpreter():
     code = (
-        "import comexp.estimator, comexp.perception\n"
-        "from comexp.reports import group_episodes\n"
-        "from comexp.estimator import ObservedPush, estimate_com\n"
         "import comexp\n"
         "assert callable(comexp.load_results) and callable(comexp.replay)\n"
+        "assert callable(comexp.run)\n"
+        "from comexp.method.estimator import ObservedPush, estimate_com, estimate_com_world\n"
+        "from comexp.results.reports import group_episodes\n"
         "assert group_episodes.__module__ == 'comexp.results.reports'\n"
-        "import comexp.method.estimator as m\n"
-        "assert comexp.estimator.estimate_com is m.estimate_com\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -248,7 +327,6 @@ def test_every_module_of_the_package_is_tracked_by_git():
 # njit) may stay long where splitting it costs speed; it says so in its docstring.
 LONG_LINES = 80
 MAX_LONG_FUNCTIONS = 3
-PACKAGE_DIRS = ("comexp", "backends", "workers")
 
 
 def _long_functions() -> dict[str, ast.FunctionDef | ast.AsyncFunctionDef]:

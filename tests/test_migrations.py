@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 from test_db import make_result
 
+from comexp.api import load_results
 from comexp.cli.query import main
 from comexp.results import migrations
-from comexp.results.api import load_results
 from comexp.results.schema import EPISODES, PUSHES, SCHEMA_VERSION
 from comexp.results.store import ResultsDB
 

@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from comexp.method.estimator import EstimatorSettings, estimate_com, make_estimator
+from comexp.method.estimator import EstimatorSettings, estimate_com
+from comexp.method.estimators import make_estimator
+from comexp.method.frames import Pose2D
 from comexp.method.motion_estimator import (
     MotionEstimator,
     MotionPush,
@@ -16,7 +18,6 @@ from comexp.method.motion_estimator import (
     PushPath,
     estimate_com_motion,
 )
-from comexp.method.scene import Pose2D
 
 PIXEL_M = 0.0027
 BOX = np.array([(-0.05, -0.03), (0.05, -0.03), (0.05, 0.03), (-0.05, 0.03)])
@@ -240,8 +241,8 @@ def test_an_episode_passes_the_path() -> None:
 
     from test_episode import spec_for
 
-    from comexp.experiment.episode import run_episode
-    from comexp.experiment.simulator import make_simulator
+    from comexp.episode.loop import run_episode
+    from comexp.experiment.config import make_simulator
 
     spec = spec_for(method="motion", fps=30.0, mu=0.1)
     spec = replace(spec, backend="planar", estimator=replace(spec.estimator, n_push=2))
@@ -463,8 +464,8 @@ def test_with_the_oracle_the_path_is_the_true_motion(monkeypatch) -> None:
 
     from test_episode import spec_for
 
-    from comexp.experiment.episode import run_episode
-    from comexp.experiment.simulator import make_simulator
+    from comexp.episode.loop import run_episode
+    from comexp.experiment.config import make_simulator
 
     seen: dict[str, list] = {"vision": [], "oracle": []}
     source = ["vision"]

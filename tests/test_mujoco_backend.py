@@ -16,11 +16,13 @@ import pytest
 import shapely.geometry
 from physics_helpers import BATCH_CASES, push_on_view
 
-from comexp.experiment.contact import pusher_contact_height_m
 from comexp.experiment.objects import com_points, load_objects
-from comexp.experiment.simulator import PushStatus, contact_push
-from comexp.method.geometry import box_object, signed_area
-from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PusherSpec, SceneSpec
+from comexp.method.frames import Pose2D
+from comexp.method.geometry import signed_area
+from comexp.sim.bodies import box_object
+from comexp.sim.contact import contact_push, pusher_contact_height_m
+from comexp.sim.protocol import push
+from comexp.sim.scene import GRAVITY_M_S2, FloorSpec, PusherSpec, PushStatus, SceneSpec
 
 mujoco_sim = pytest.importorskip("comexp.backends.mujoco_sim")
 
@@ -52,7 +54,7 @@ def _push_through_com(sim, mu: float, speed: float, com: tuple[float, float], po
     sim.build(scene)
     contact = pose.to_world(np.array([-0.04, com[1]]))
     normal = (math.cos(pose.yaw_rad), math.sin(pose.yaw_rad))
-    return sim.push(contact_push(contact, normal, 0.03, speed, scene.pusher.radius_m))
+    return push(sim, contact_push(contact, normal, 0.03, speed, scene.pusher.radius_m))
 
 
 @pytest.mark.parametrize(
@@ -247,10 +249,10 @@ def test_the_conditions_of_a_batch_share_kept_models(floor_friction):
     assert (sim.model is first) == (floor_friction == "model")
     contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
     cmd = contact_push(contact, (math.cos(0.3), math.sin(0.3)), 0.03, 0.4, 0.005)
-    kept = sim.push(cmd), sim.object_state()
+    kept = push(sim, cmd), sim.object_state()
     fresh = mujoco_sim.MujocoSimulator(floor_friction=floor_friction)
     fresh.build(other_floor)
-    assert kept == (fresh.push(cmd), fresh.object_state())
+    assert kept == (push(fresh, cmd), fresh.object_state())
     assert kept[0].contact_made and abs(kept[0].true_rotation_deg) > 1.0
     for k in range(mujoco_sim.KEPT_MODELS + 1):  # the oldest is dropped
         sim.build(replace(scene, obj=box_object(0.08, 0.05, 0.03, com_m=(0.0, 0.001 * k))))
@@ -270,7 +272,7 @@ def _box_push(sim, mu: float, speed: float):
     sim.build(scene)
     contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
     normal = (math.cos(0.3), math.sin(0.3))
-    return sim.push(contact_push(contact, normal, 0.03, speed, 0.005))
+    return push(sim, contact_push(contact, normal, 0.03, speed, 0.005))
 
 
 @pytest.mark.parametrize("mu, speed", [(0.1, 0.4), (1.0, 0.04)])
@@ -341,10 +343,10 @@ def test_the_touch_sensor_reads_the_contact_list(sim):
     contact = scene.initial_pose.to_world(np.array([-0.04, 0.012]))
     n = np.array([math.cos(0.3), math.sin(0.3)])
     start = contact - n * 0.007
-    sim._place_pusher(start)
+    sim.place_pusher(start)
     seen = set()
     for k in range(1, 120):  # 2 mm to the face, then 1.7 cm into it, at 0.16 m/s
-        sim._advance((start + n * 1.6e-4 * k)[None, :])
+        sim.advance((start + n * 1.6e-4 * k)[None, :])
         g, dist = d.contact.geom[: d.ncon], d.contact.dist[: d.ncon]
         listed = bool(np.any(((g[:, 0] == pusher) | (g[:, 1] == pusher)) & (dist < 0)))
         assert sim._pusher_touching() == listed, k
@@ -382,11 +384,10 @@ def test_a_build_is_the_settle_at_its_pose(floor_friction):
 
 
 class _OneChunkAtATime(mujoco_sim.MujocoSimulator):
-    """MuJoCo without `_advance_chunks`: the protocol runs and checks one chunk per call."""
+    """MuJoCo not running chunks in one call: the protocol runs and checks one per call."""
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.batches_chunks = False
+    def runs_chunks(self) -> bool:
+        return False
 
 
 @pytest.fixture(scope="module")
@@ -414,16 +415,16 @@ def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(
     calls, below = [], []
 
     def run_chunks(*args):
-        calls.append(type(batched)._advance_chunks(batched, *args))
+        calls.append(type(batched).advance_chunks(batched, *args))
         # the last chunk's tilt covers the state's (as it does every passed chunk's)
         below.append(calls[-1][-1][1] < batched.object_state().tilt_deg)
         return calls[-1]
 
-    batched._advance_chunks = run_chunks
+    batched.advance_chunks = run_chunks
     try:
         a = push_on_view(batched, floor, obj, Pose2D(*pose), cmd, True, every)
     finally:
-        del batched._advance_chunks
+        del batched.advance_chunks
     b = push_on_view(one_by_one, floor, obj, Pose2D(*pose), cmd, True, every)
     assert a == b
     assert not any(below)
@@ -453,21 +454,23 @@ def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one(batched_and_one_
 
 
 def test_a_batch_stops_at_each_of_its_rules(batched_and_one_by_one):
-    """`chunk_stops` on a built scene at rest: nothing stops it but the rest rule where it
+    """The compiled stop rule on a built scene at rest (`mujoco_steps._stops`, the protocol's
+    `stop_rule.chunk_stops` on MuJoCo's state): nothing stops it but the rest rule where it
     is asked; a coordinate not finite, one unstable warning more than at the build, a tilt
-    past the rule's cosine, the origin outside the box each stop it."""
-    from comexp.backends.mujoco_steps import chunk_stops
+    past the cosine, the origin outside the box each stop it."""
+    from comexp.backends.mujoco_steps import _stops
 
     sim = batched_and_one_by_one[0]
     sim.build(SceneSpec(FloorSpec(0.5, 0.5), box_object(0.08, 0.05, 0.03, com_m=(0.01, 0.0))))
     qpos, qvel = sim.data.qpos.copy(), sim.data.qvel.copy()
     warnings = sim._warning_numbers.copy()
     index = mujoco_sim._UNSTABLE_WARNING_INDEX
-    rule = np.array((-1.0, 1.0, -1.0, 1.0, 1e-3, 1e-3, math.cos(math.radians(7.5))))
+    rule = np.array((-1.0, 1.0, -1.0, 1.0, 1e-3, 1e-3))
+    tilt = math.cos(math.radians(7.5))
 
     def stops(qpos=qpos, qvel=qvel, min_cos=1.0, rule=rule, rest=False, warnings=warnings):
-        return chunk_stops(qpos, qvel, sim._obj_qadr, sim._obj_vadr, min_cos, rule, rest,
-                           warnings, index, sim._warnings0, np.empty(9))  # fmt: skip
+        return _stops(qpos, qvel, sim._obj_qadr, sim._obj_vadr, min_cos, tilt, rule, rest,
+                      warnings, index, sim._warnings0, np.empty(9))  # fmt: skip
 
     assert not stops() and stops(rest=True)
     moving = qvel.copy()

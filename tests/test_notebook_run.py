@@ -1,15 +1,14 @@
-"""`comexp.run(overrides)`: the README's notebook example runs a tiny planar job through the
-command line's own path and returns exactly the rows `comexp` itself stores for the same
-overrides (this job's only), passes the job's output on while it runs (log lines, the progress
-bar's carriage-return updates) through `sys.stdout` / `sys.stderr`, and bad input is one
-ValueError that writes nothing."""
+"""`comexp.run(overrides)`: the README's notebook example runs a tiny planar job through the job
+service in this process and returns exactly the rows `comexp` itself stores for the same
+overrides (this job's only), shows the job's output while it runs (log lines, the progress
+bar's carriage-return updates) through `sys.stdout` / `sys.stderr`, a second call reuses the
+first one's workers, and bad input is one ValueError that writes nothing."""
 
 from __future__ import annotations
 
 import os
 import re
 import sqlite3
-import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,8 +18,7 @@ import pytest
 from test_cli import comexp_in_process
 from test_db import make_result
 
-import comexp as package
-from comexp.results.api import load_results, run
+from comexp.api import load_results, run
 from comexp.results.store import ResultsDB
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -35,16 +33,15 @@ def _readme_block() -> str:
 
 
 class Recorder:
-    """A notebook's `sys.stdout` / `sys.stderr` stand-in: every write, with whether the job's
-    child process was still running when it arrived."""
+    """A notebook's `sys.stdout` / `sys.stderr` stand-in: every write, with how many episodes
+    the job had stored when it arrived (`stored_now`)."""
 
-    def __init__(self, children: list[subprocess.Popen]) -> None:
-        self.children = children
-        self.writes: list[tuple[bool, str]] = []
+    def __init__(self, stored_now) -> None:
+        self.stored_now = stored_now
+        self.writes: list[tuple[int, str]] = []
 
     def write(self, text: str) -> int:
-        running = bool(self.children) and self.children[-1].poll() is None
-        self.writes.append((running, text))
+        self.writes.append((self.stored_now(), text))
         return len(text)
 
     def flush(self) -> None:
@@ -63,8 +60,7 @@ def _overrides(block: str) -> list[str]:
 def runs(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Iterator[dict]:
     """The README example run in a fresh directory (whose database already holds another
     job's episode), and the command line with the same overrides in another one (its
-    `main()` in this process, on the module's Ray; the README's `comexp.run` runs the
-    command in a child process)."""
+    `main()` in this process, on the module's Ray, as `comexp.run`'s job)."""
     block = _readme_block()
     overrides = _overrides(block)
     nb, cli = tmp_path_factory.mktemp("notebook"), tmp_path_factory.mktemp("cli")
@@ -76,18 +72,14 @@ def runs(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Iterator[dict]:
     cwd = os.getcwd()
     os.chdir(nb)
     scope: dict = {}
-    children: list[subprocess.Popen] = []
 
-    class Popen(subprocess.Popen):  # keeps the child, so a write can ask if it still runs
-        def __init__(self, *args, **kwargs) -> None:
-            super().__init__(*args, **kwargs)
-            children.append(self)
+    def stored_now() -> int:
+        with sqlite3.connect(nb_db) as c:
+            return c.execute("select count(*) from episodes").fetchone()[0] - 1
 
-    out, err = Recorder(children), Recorder(children)
+    out, err = Recorder(stored_now), Recorder(stored_now)
     try:
-        package.run = run  # until comexp/__init__.py exports it (no-op afterwards)
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(subprocess, "Popen", Popen)
             mp.setattr(sys, "stdout", out)
             mp.setattr(sys, "stderr", err)
             exec(compile(block, "README.md", "exec"), scope)  # noqa: S102 - our own document
@@ -101,7 +93,6 @@ def runs(tmp_path_factory: pytest.TempPathFactory, local_ray) -> Iterator[dict]:
         "nb_db": nb_db,
         "nb_dir": nb,
         "cli_db": cli / db_arg.removeprefix("db="),
-        "children": children,
         "out": out,
         "err": err,
     }
@@ -138,21 +129,18 @@ def test_run_returns_the_rows_the_command_line_stores(runs: dict) -> None:
     assert list((runs["nb_dir"] / "results" / "runs").glob("*/summary.csv"))
 
 
-def test_the_jobs_output_is_passed_on_while_it_runs(runs: dict) -> None:
+def test_the_jobs_output_is_shown_while_it_runs(runs: dict) -> None:
     """Not only when the job ends: the job's first log line and its progress bar at 0/2 come
-    before any episode runs, so they reach the caller's streams while the child is still
-    running (printing everything at the end, every write would find it exited). The bar's
-    updates keep their carriage returns (a notebook redraws the line), the printed results
-    follow, and nothing goes to the caller's streams outside `sys.stdout` / `sys.stderr`."""
-    (child,) = runs["children"]
-    assert child.returncode == 0
+    before any episode is stored. The bar's updates keep their carriage returns (a notebook
+    redraws the line), the printed results follow, and nothing goes to the caller's streams
+    outside `sys.stdout` / `sys.stderr`."""
     out, err = runs["out"], runs["err"]
-    first_log = next(i for i, (_, t) in enumerate(out.writes) if "to run" in t)
-    assert out.writes[first_log][0], "the job's first log line came after the job ended"
-    bar = [(running, t) for running, t in err.writes if "\r" in t]
+    first_log = next(i for i, (_, t) in enumerate(err.writes) if "to run" in t)
+    assert err.writes[first_log][0] == 0, "the job's first log line came after it stored"
+    bar = [(stored, t) for stored, t in err.writes if "\r" in t]
     assert bar, f"no progress bar on stderr: {err.text()!r}"
     assert re.search(r"\r[^\r\n]*0/2", err.text()) and re.search(r"\r[^\r\n]*2/2", err.text())
-    assert bar[0][0] and "0/2" in bar[0][1], "the progress bar came after the job ended"
+    assert bar[0][0] == 0 and "0/2" in bar[0][1], "the progress bar came after the job stored"
     assert re.search(r": ran 2 episodes in [\d.]+ s \(0 failed\), stored 2\n", out.text())
     assert "reports (" in out.text()
 
@@ -164,42 +152,47 @@ def test_a_rerun_returns_the_stored_rows_without_running(runs: dict, monkeypatch
         raise AssertionError("nothing should run")
 
     monkeypatch.setattr("comexp.workers.pool.EpisodePool", no_pool)
+    monkeypatch.setattr("comexp.experiment.job.job_pool", no_pool)
     again = run(runs["overrides"])
     assert list(again.id) == list(runs["df"].id)
     assert list(again.error_cm) == list(runs["df"].error_cm)
 
 
 @pytest.mark.parametrize(
-    ("overrides", "message", "child"),
+    ("overrides", "message"),
     [
-        (["backend=planar", "workers=0"], "workers must be a count >= 1 or auto, got 0", True),
-        (
-            ["backend=nope"],
-            "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)",
-            True,
-        ),
-        (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'", True),
-        (
-            ["speed=40,4"],
-            "comexp.run runs one job; call it once per value of: ['speed=40,4']",
-            False,
-        ),
-        (["-m", "speed=4"], "comexp.run takes overrides only", False),
+        (["backend=planar", "workers=0"], "workers must be a count >= 1 or auto, got 0"),
+        (["backend=nope"], "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)"),
+        (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'"),
+        (["speed=40,4"], "comexp.run runs one job; call it once per value of: ['speed=40,4']"),
+        (["-m", "speed=4"], "comexp.run takes overrides only"),
     ],
 )
 def test_bad_input_is_one_value_error_and_writes_nothing(
-    tmp_path: Path, monkeypatch, capsys, overrides: list[str], message: str, child: bool
+    tmp_path: Path, monkeypatch, capsys, overrides: list[str], message: str
 ) -> None:
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ValueError) as err:
         run([*overrides, "db=bad.db"])
     assert str(err.value).startswith(message) and "\n" not in str(err.value)
     assert list(tmp_path.iterdir()) == []
-    # refused by the command: its error line was shown on stderr too; before it: nothing
-    shown = capsys.readouterr().err
-    assert shown == (f"comexp: error: {err.value}\n" if child else "")
+    assert capsys.readouterr().err == ""  # the one line is the error's
 
 
 def test_a_string_is_not_a_list_of_overrides() -> None:
     with pytest.raises(TypeError, match="a list of strings"):
         run("backend=planar")
+
+
+def test_a_second_job_in_the_process_reuses_the_first_ones_workers(runs: dict, monkeypatch) -> None:
+    """The notebook's next job on the same backend starts no Ray and no worker: the session
+    and the pool of the job before are still up (`job_pool`)."""
+    from comexp.workers import pool
+
+    monkeypatch.chdir(runs["nb_dir"])
+    overrides = [a for a in runs["overrides"] if not a.startswith("pusher.mu")]
+    run([*overrides, "pusher.mu=[0.1]"])
+    first = pool._kept[1]
+    df = run([*overrides, "pusher.mu=[0.5]"])
+    assert len(df) == 2 and (df.status == "ok").all()
+    assert pool._kept[1] is first and first._slots  # the same pool, its workers up

@@ -70,7 +70,7 @@ def test_a_direct_call_is_the_dispatcher_s_call_without_its_type_resolution():
     from comexp.backends.floor_friction import FootprintFriction, impulse_kernel
     from comexp.backends.numba_kernels import DirectCall
     from comexp.experiment.objects import com_point, load_objects
-    from comexp.method.scene import PusherSpec
+    from comexp.sim.scene import PusherSpec
 
     od = load_objects(["l_shape"])["l_shape"]
     spec = od.model(com_point(od, 0), izz_scale=1.0, mu_pusher=0.5)

@@ -10,14 +10,15 @@ from shapely.geometry import Point
 
 from comexp.experiment.objects import (
     MIN_WIDTH_CM,
-    PACKAGE_SOURCES,
     ObjectDef,
     com_point,
     com_points,
     load_objects,
     object_names,
 )
+from comexp.experiment.sources import PACKAGE_SOURCES
 from comexp.method import geometry
+from comexp.sim.protocol import push
 
 L_OUTLINE = [[0, 0], [10, 0], [10, 4], [4, 4], [4, 8], [0, 8]]
 
@@ -215,7 +216,7 @@ def test_model_converts_units_as_every_episode_does():
     assert spec.mass_kg == 0.2 and spec.mu_pusher == 0.1
     assert np.asarray(spec.outline_m) * 100 == pytest.approx(np.asarray(o.outline_cm))
     assert len(spec.convex_parts_m) == 2
-    from comexp.experiment.episode import EpisodeSpec, build_scene
+    from comexp.episode.task import EpisodeSpec, build_scene
 
     ep = EpisodeSpec.for_object(
         o,
@@ -265,8 +266,9 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(backend):
     as the sampler allows (a corner of the footprint shrunk by the 1 cm margin), pushed
     straight through the CoM from every reachable side. Tipping needs roughly
     mu * (height / 2) > distance from the CoM to the leading edge."""
-    from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
-    from comexp.method.scene import FloorSpec, PusherSpec, SceneSpec
+    from comexp.experiment.config import make_simulator
+    from comexp.sim.contact import contact_push
+    from comexp.sim.scene import FloorSpec, PusherSpec, PushStatus, SceneSpec
 
     r_cm = PusherSpec().radius_m * 100
     sim = make_simulator(backend)
@@ -280,7 +282,7 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(backend):
                 scene = SceneSpec(FloorSpec(1.0, 1.0), obj.model(com, izz_scale=1.0, mu_pusher=1.0))
                 sim.build(scene)
                 cmd = contact_push(c / 100.0, n, 0.03, 0.4, scene.pusher.radius_m)
-                out = sim.push(cmd)
+                out = push(sim, cmd)
                 assert out.status is not PushStatus.TIPPED, (obj.name, com, c, n)
                 if out.max_tilt_deg > worst[0]:
                     worst = (out.max_tilt_deg, obj.name)
@@ -293,8 +295,8 @@ def test_builtin_objects_do_not_tip_under_the_harshest_push(backend):
 def test_every_builtin_object_builds_with_izz_x10(backend):
     """Regression: raising Ixx + Iyy to exactly Izz lost the equality to rounding and MuJoCo
     refused 15% of the Izz x 10 episodes ("inertia must satisfy A + B >= C")."""
-    from comexp.experiment.simulator import make_simulator
-    from comexp.method.scene import FloorSpec, SceneSpec
+    from comexp.experiment.config import make_simulator
+    from comexp.sim.scene import FloorSpec, SceneSpec
 
     sim = make_simulator(backend)
     try:

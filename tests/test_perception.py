@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import shapely
 
+from comexp.method.frames import CameraSpec, DepthImage, Pose2D
 from comexp.method.observation import PerceptionError, object_mask, observe, perceive_first
 from comexp.method.rendering import render_prism_depth
-from comexp.method.scene import CameraSpec, DepthImage, Pose2D
 from comexp.method.tracking import PoseTracker
 
 CAM = CameraSpec().model()

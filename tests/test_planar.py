@@ -13,12 +13,14 @@ import numpy as np
 import pytest
 from physics_helpers import BATCH_CASES, push_on_view
 
-from comexp.backends.floor_friction import FrictionSettings, WinklerPressure, footprint_samples
-from comexp.backends.planar_sim import PlanarSimulator, SlowSteps
-from comexp.experiment.contact import pusher_contact_height_m
-from comexp.experiment.simulator import PushStatus, contact_push
-from comexp.method.geometry import box_object, prism_object
-from comexp.method.scene import GRAVITY_M_S2, FloorSpec, Pose2D, PusherSpec, SceneSpec, SimSettings
+from comexp.backends.floor_friction import WinklerPressure, footprint_samples
+from comexp.backends.physics_settings import FrictionSettings, SlowSteps
+from comexp.backends.planar_sim import PlanarSimulator
+from comexp.method.frames import Pose2D
+from comexp.sim.bodies import box_object, prism_object
+from comexp.sim.contact import contact_push, pusher_contact_height_m
+from comexp.sim.protocol import push
+from comexp.sim.scene import GRAVITY_M_S2, FloorSpec, PusherSpec, PushStatus, SceneSpec, SimSettings
 
 RECT = np.array([(-0.04, -0.025), (0.04, -0.025), (0.04, 0.025), (-0.04, 0.025)])
 
@@ -62,7 +64,7 @@ def test_winkler_pressure_is_linear_inside_the_kern():
 def _pushed_box(sim, mu, speed, lever=0.01, com=(0.0, 0.0)):
     scene = SceneSpec(FloorSpec(mu, mu), box_object(0.08, 0.05, 0.015, com_m=com, mu_pusher=0.5))
     sim.build(scene)
-    return sim.push(contact_push((-0.04, lever), (1.0, 0.0), 0.03, speed, 0.005))
+    return push(sim, contact_push((-0.04, lever), (1.0, 0.0), 0.03, speed, 0.005))
 
 
 def test_an_object_at_rest_stays_exactly_at_rest():
@@ -133,7 +135,7 @@ def test_sustained_push_that_would_tip_reports_tipped():
         "tall", [(-0.01, -0.01), (0.01, -0.01), (0.01, 0.01), (-0.01, 0.01)], 0.12, (0, 0)
     )
     sim.build(SceneSpec(FloorSpec(1.0, 1.0), tall))
-    out = sim.push(contact_push((-0.01, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005))
+    out = push(sim, contact_push((-0.01, 0.0), (1.0, 0.0), 0.03, 0.04, 0.005))
     assert out.status is PushStatus.TIPPED
 
 
@@ -144,7 +146,7 @@ def _block_pushed_through_its_com(d_m: float, speed: float, length_m: float = 0.
     block = box_object(0.03, 0.03, 0.02, com_m=(0.015 - d_m, 0.0), mu_pusher=0.5)
     sim.build(SceneSpec(FloorSpec(1.0, 1.0), block))
     sim.trace = []
-    out = sim.push(contact_push((-0.015, 0.0), (1.0, 0.0), length_m, speed, 0.005))
+    out = push(sim, contact_push((-0.015, 0.0), (1.0, 0.0), length_m, speed, 0.005))
     tilts = np.array([s.tilt_deg for s in sim.trace])
     sim.trace = None
     return out, sim, block, tilts
@@ -210,7 +212,7 @@ def test_a_rebuilt_scene_is_a_new_one_to_the_bit():
 
     used = PlanarSimulator()
     used.build(scene)
-    first = used.push(contact_push((-0.04, 0.008), (1.0, 0.0), 0.03, 0.04, 0.005))
+    first = push(used, contact_push((-0.04, 0.008), (1.0, 0.0), 0.03, 0.04, 0.005))
     assert first.ok and abs(first.rotation_deg) > 0.1
     model = used._model
     used.build(again)
@@ -226,7 +228,7 @@ def test_a_rebuilt_scene_is_a_new_one_to_the_bit():
             err_msg=state,
         )
     used.trace, fresh.trace = [], []
-    assert used.push(second) == fresh.push(second)
+    assert push(used, second) == push(fresh, second)
     assert used.trace == fresh.trace and len(used.trace) > 100
 
 
@@ -250,7 +252,7 @@ def test_the_object_state_is_the_model_s_at_every_read():
     sim.set_object_velocity((0.05, 0.0, 0.0), (0.0, 0.0, 1.0))
     assert sim.object_state() == made(sim) != first
     assert sim.object_state().angular_velocity_rad_s[2] == 1.0
-    sim._advance(np.repeat(np.array([[0.5, 0.5]]), 10, axis=0))  # steps, pusher far away
+    sim.advance(np.repeat(np.array([[0.5, 0.5]]), 10, axis=0))  # steps, pusher far away
     assert sim.object_state() == made(sim) and sim.object_state().pose != first.pose
     sim.build(replace(scene, initial_pose=Pose2D(0.01, 0.0, 0.2)))  # reset to the start
     assert sim.object_state() == first
@@ -273,7 +275,7 @@ def test_rendered_pose_matches_the_state():
 
 @pytest.mark.parametrize("slow_steps", [1, SlowSteps().steps])
 def test_a_traced_push_is_the_untraced_push(slow_steps):
-    """`_advance` runs the steps in one compiled call; with a trace it records every model
+    """`advance` runs the steps in one compiled call; with a trace it records every model
     step's state, and the push it traces is the same push. With slow steps off that is one
     state per protocol step; on, the slow tail of the slide takes fewer."""
     slow = replace(SlowSteps(), steps=slow_steps)
@@ -296,7 +298,7 @@ def test_engine_friction_impulse_holds_and_then_slides():
     exactly (static friction); a fast slide loses mu m g dt of momentum per step and moves the
     pressure centre forward."""
     from comexp.backends.floor_friction import FootprintFriction
-    from comexp.method.scene import PusherSpec
+    from comexp.sim.scene import PusherSpec
 
     obj = box_object(0.08, 0.05, 0.015)
     fr = FootprintFriction(obj, 0.5, 0.5, PusherSpec())
@@ -315,7 +317,7 @@ def test_impulse_of_a_twist_in_floats_is_the_kernels_to_the_bit():
     `impulse_kernel` on the twist's array, the kernel MuJoCo's compiled loop calls, and leaves
     the same pressure for the next step: at rest, sliding, spinning, pushed."""
     from comexp.backends.floor_friction import FootprintFriction, impulse_kernel
-    from comexp.method.scene import PusherSpec
+    from comexp.sim.scene import PusherSpec
 
     obj = box_object(0.08, 0.05, 0.015)
     a, b = (FootprintFriction(obj, 0.6, 0.3, PusherSpec()) for _ in range(2))
@@ -343,9 +345,9 @@ def test_kept_samples_are_the_fresh_ones_and_the_callers_own():
 
 
 class _CheckEveryChunk(PlanarSimulator):
-    """planar without `_steps_still`: the protocol checks every chunk, as before it existed."""
+    """planar without `steps_still`: the protocol checks every chunk, as before it existed."""
 
-    def _steps_still(self, targets):
+    def steps_still(self, targets):
         return 0
 
 
@@ -354,7 +356,8 @@ def _watched_push(sim, speed_m_s: float, lever_m: float):
     sim.build(SceneSpec(FloorSpec(0.3, 0.3), obj))
     cmd = contact_push((-0.04, -0.005 + lever_m), (1.0, 0.0), 0.03, speed_m_s, 0.005)
     frames, still = [], []
-    out = sim.push(
+    out = push(
+        sim,
         cmd,
         on_frame=lambda f: frames.append((f.t_s, f.pusher_xy_m)),
         frame_interval_s=1.0 / 30.0,
@@ -376,9 +379,10 @@ def test_skipping_still_steps_changes_nothing_the_protocol_reports(speed_m_s):
 
 
 class _OneChunkAtATime(PlanarSimulator):
-    """planar without `_advance_chunks`: the protocol runs and checks one chunk per call."""
+    """planar not running chunks in one call: the protocol runs and checks one per call."""
 
-    batches_chunks = False
+    def runs_chunks(self) -> bool:
+        return False
 
 
 @pytest.mark.parametrize("case", sorted(BATCH_CASES))
@@ -393,8 +397,8 @@ def test_chunks_run_in_one_call_report_what_chunks_run_one_by_one(case, watch, e
     cmd = contact_push(start, (1.0, 0.0), length, speed, 0.005)
     batched = PlanarSimulator()
     calls = []
-    run_chunks = batched._advance_chunks
-    batched._advance_chunks = lambda *a: calls.append(run_chunks(*a)) or calls[-1]
+    run_chunks = batched.advance_chunks
+    batched.advance_chunks = lambda *a: calls.append(run_chunks(*a)) or calls[-1]
     a = push_on_view(batched, floor, obj, Pose2D(*pose), cmd, watch, every)
     b = push_on_view(_OneChunkAtATime(), floor, obj, Pose2D(*pose), cmd, watch, every)
     assert a == b
@@ -411,8 +415,8 @@ class _StopsEarly(PlanarSimulator):
     """planar running at most two chunks a call: a backend may stop after any chunk (the
     protocol then checks it in full), here right after frames the tracker declined."""
 
-    def _advance_chunks(self, targets, chunk, stop):
-        return super()._advance_chunks(targets[: 2 * chunk], chunk, stop)
+    def advance_chunks(self, targets, chunk, stop):
+        return super().advance_chunks(targets[: 2 * chunk], chunk, stop)
 
 
 def test_a_batch_cut_short_after_a_declined_frame_asks_the_frames_one_by_one_would():
@@ -424,7 +428,7 @@ def test_a_batch_cut_short_after_a_declined_frame_asks_the_frames_one_by_one_wou
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
     cmd = contact_push((-0.045, 0.012), (1.0, 0.0), 0.03, 0.04, 0.005)
 
-    def push(sim):
+    def run_push(sim):
         sim.build(SceneSpec(FloorSpec(0.1, 1.0), obj))
         asked, frames, still = [], [], []
 
@@ -432,10 +436,10 @@ def test_a_batch_cut_short_after_a_declined_frame_asks_the_frames_one_by_one_wou
             asked.append(t_s)
             return round(t_s * 30.0) % 4 == 0
 
-        out = sim.push(cmd, lambda f: frames.append(f.t_s), 1 / 30, still.append, wanted)
+        out = push(sim, cmd, lambda f: frames.append(f.t_s), 1 / 30, still.append, wanted)
         return out, frames, still, sorted(set(asked))
 
-    early, one_by_one = push(_StopsEarly()), push(_OneChunkAtATime())
+    early, one_by_one = run_push(_StopsEarly()), run_push(_OneChunkAtATime())
     assert early[:3] == one_by_one[:3]
     asked, asked_one_by_one, still = set(early[3]), set(one_by_one[3]), set(early[2])
     assert asked_one_by_one <= asked and asked - asked_one_by_one <= still
@@ -465,7 +469,7 @@ def test_a_tipping_block_s_chunks_run_in_one_call_as_one_by_one():
 
 def test_steps_declared_still_that_move_the_object_are_an_error():
     class Liar(PlanarSimulator):
-        def _steps_still(self, targets):
+        def steps_still(self, targets):
             return len(targets)  # claims even the steps that push the object
 
     with pytest.raises(RuntimeError, match="moved in steps declared still"):
@@ -485,7 +489,7 @@ def _boundary_distance(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("gap_m", [0.0005, 0.003, 0.012, 0.03])
 @pytest.mark.parametrize("yaw", [0.0, 0.7])
 def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m, yaw):
-    """`_steps_still` (compiled, step by step) counts to the first step whose end lies
+    """`steps_still` (compiled, step by step) counts to the first step whose end lies
     closer to the outline than the step is long (plus the margin), as the whole path's
     distances computed at once say, and the whole path when no step comes near; none from a
     start within reach."""
@@ -495,10 +499,10 @@ def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m, yaw):
     obj = box_object(0.08, 0.05, 0.03, com_m=(0.01, -0.005), mu_pusher=0.5)
     sim.build(SceneSpec(FloorSpec(0.3, 0.3), obj, initial_pose=Pose2D(0.0, 0.0, yaw)))
     radius = sim._scene.pusher.radius_m
-    poly = sim.object_state().pose.to_world(sim._outline_m())
+    poly = sim.object_state().pose.to_world(sim.outline_m())
     reach = float(np.max(np.hypot(*poly.T)))  # a start beyond the outline along -x
     start = np.array([-reach - radius - gap_m, 0.0])
-    sim._place_pusher(start)
+    sim.place_pusher(start)
     step_m = 0.04 * sim.settings.timestep_s
     gap = _boundary_distance(start[None, :], poly)[0] - radius
     for travel_m in (gap + 0.01, 0.5 * gap):
@@ -508,12 +512,12 @@ def test_still_steps_are_counted_to_the_first_step_within_reach(gap_m, yaw):
         clear = _boundary_distance(targets, poly) - radius
         bad = np.flatnonzero(clear < np.hypot(*np.diff(pts, axis=0).T) + _STILL_MARGIN_M)
         expected = int(bad[0]) if len(bad) else n
-        assert sim._steps_still(targets) == expected
+        assert sim.steps_still(targets) == expected
         assert (expected < n) == (travel_m > gap)  # reaches the object, or stops short
     inside = np.array(sim.object_state().position_m[:2])  # deep inside: far from the edges
     assert _boundary_distance(inside[None, :], poly)[0] > 3 * radius
-    sim._place_pusher(inside)
-    assert sim._steps_still(inside + step_m * np.arange(1, 10)[:, None] * [1.0, 0.0]) == 0
+    sim.place_pusher(inside)
+    assert sim.steps_still(inside + step_m * np.arange(1, 10)[:, None] * [1.0, 0.0]) == 0
 
 
 def test_a_warm_started_tensionless_pressure_is_the_cold_one():
@@ -562,7 +566,7 @@ def test_the_push_solve_converges_to_the_tight_solvers_answer(speed):
     for planar in (FrictionSettings(), FrictionSettings(newton_tol=1e-19, max_newton=200)):
         sim = PlanarSimulator(planar=planar)
         sim.build(scene)
-        out = sim.push(cmd)
+        out = push(sim, cmd)
         assert out.status == PushStatus.OK
         turns.append(out.rotation_deg)
     assert abs(turns[0]) > 5.0

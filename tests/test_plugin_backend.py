@@ -1,5 +1,5 @@
 """A researcher's own backend plugs in from config, without editing the package: a user config
-directory adds `backend/NAME.yaml` naming a `Simulator` subclass (`backend.name=module:Class`)
+directory adds `backend/NAME.yaml` naming a `Simulator` subclass (`_target_: module.Class`)
 whose module defines the physics identity's names, as the built-in backends' modules do.
 """
 
@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_module
 
-from comexp.experiment.config import ConfigError, prepare_job, simulator_options
+from comexp.backends.physics_settings import physics_identity
+from comexp.experiment.config import ConfigError, prepare_job
 from comexp.experiment.grid import expand_grid
-from comexp.experiment.registry import make_simulator, physics_identity
 
 PLUGIN = '''\
 """A user's backend: the planar model under another name, counting its builds."""
@@ -39,7 +39,8 @@ from comexp.backends.planar_sim import PlanarSimulator
 class NoIdentity(PlanarSimulator):
     pass
 """
-NAME = "my_backends:ToyPlanar"
+NAME = "toy"
+TARGET = "my_backends.ToyPlanar"
 
 
 @pytest.fixture
@@ -47,7 +48,7 @@ def user_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """DIR/conf/backend/toy.yaml (the config) and DIR/plug/my_backends.py (the code, on
     sys.path as an installed package or PYTHONPATH would put it)."""
     (tmp_path / "conf" / "backend").mkdir(parents=True)
-    (tmp_path / "conf" / "backend" / "toy.yaml").write_text(f"name: {NAME}\n")
+    (tmp_path / "conf" / "backend" / "toy.yaml").write_text(f"name: {NAME}\n_target_: {TARGET}\n")
     (tmp_path / "plug").mkdir()
     (tmp_path / "plug" / "my_backends.py").write_text(PLUGIN)
     (tmp_path / "plug" / "my_broken_backends.py").write_text(BROKEN)
@@ -64,7 +65,7 @@ def _compose(*overrides: str, conf: Path | None = None):
 
 
 def test_a_plugin_backend_from_a_user_config_dir_runs_an_episode(user_dir: Path) -> None:
-    from comexp.experiment.episode import run_episode
+    from comexp.episode.loop import run_episode
 
     job = prepare_job(
         _compose(
@@ -75,14 +76,14 @@ def test_a_plugin_backend_from_a_user_config_dir_runs_an_episode(user_dir: Path)
         )
     )
     assert job.cfg.backend.name == NAME
-    assert simulator_options(job.cfg) == {}  # neither floor_friction nor a renderer: engines'
+    assert job.simulator.options == {}  # neither floor_friction nor a renderer: engines'
     specs = expand_grid(job.cfg, job.objects, estimator=job.estimator)
-    physics = physics_identity(NAME)
+    physics = physics_identity(NAME, TARGET)
     assert physics.startswith(f"{NAME}/toy-1/numpy-none/")
     assert (
         specs and {s.physics for s in specs} == {physics} and {s.backend for s in specs} == {NAME}
     )
-    sim = make_simulator(NAME)
+    sim = job.simulator.make()
     assert type(sim).__name__ == "ToyPlanar"
     res = run_episode(specs[0], sim)
     assert res.status == "ok", (res.failure, res.detail)
@@ -92,17 +93,29 @@ def test_a_plugin_backend_from_a_user_config_dir_runs_an_episode(user_dir: Path)
 @pytest.mark.parametrize(
     ("name", "needle"),
     [
-        ("no_such_module:Sim", "cannot import"),
-        ("math:no_such_name", "cannot import"),
-        ("math:pi", "not a Simulator subclass"),
-        ("my_broken_backends:NoIdentity", "must define PHYSICS_VERSION, PHYSICS_SETTINGS"),
-        ("bullet3", "unknown backend"),
+        ("no_such_module.Sim", "cannot import"),
+        ("math.no_such_name", "cannot import"),
+        ("math.pi", "not a Simulator subclass"),
+        ("my_broken_backends.NoIdentity", "must define PHYSICS_VERSION, PHYSICS_SETTINGS"),
+        ("Sim", "must be module.Class"),
     ],
 )
 def test_a_backend_that_cannot_be_used_is_one_config_error(
     user_dir: Path, name: str, needle: str
 ) -> None:
     with pytest.raises(ConfigError) as info:
-        prepare_job(_compose(f"backend.name={name}"))
+        prepare_job(_compose("backend=toy", f"backend._target_={name}", conf=user_dir / "conf"))
     msg = str(info.value)
     assert needle in msg and "\n" not in msg, msg
+
+
+def test_an_unknown_backend_is_one_line_naming_the_choices() -> None:
+    from hydra.errors import HydraException
+
+    from comexp.experiment.config import hydra_error_line
+
+    with pytest.raises(HydraException) as info:
+        _compose("backend=bullet3")
+    assert hydra_error_line(info.value) == (
+        "unknown backend 'bullet3' (choose one of: mujoco, planar, pybullet)"
+    )

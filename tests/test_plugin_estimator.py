@@ -15,13 +15,8 @@ from hydra import compose, initialize_config_module
 
 from comexp.experiment.config import ConfigError, prepare_job
 from comexp.experiment.grid import expand_grid
-from comexp.method.estimator import (
-    ComEstimator,
-    Estimator,
-    EstimatorSettings,
-    make_estimator,
-    resolve_estimator,
-)
+from comexp.method.estimator import ComEstimator, EstimatorSettings
+from comexp.method.estimators import Estimator, make_estimator, resolve_estimator
 
 PLUGIN = '''\
 """A user's estimator: Algorithm 1's push choice and Algorithm 2's update from the library,
@@ -29,7 +24,7 @@ without the reachability check; counts its calls."""
 
 import numpy as np
 
-from comexp.estimator import choose_contact, update_region
+from comexp.method.estimator import choose_contact, update_region
 
 CALLS = []
 
@@ -103,7 +98,7 @@ def _square(half_m: float = 0.03, pixel_m: float = 0.0027):
 
 
 def test_a_plugin_from_a_user_config_dir_is_resolved_and_called(user_dir: Path) -> None:
-    job = prepare_job(_compose(user_dir / "conf", "+estimator=centroid", "grid.objects=[l_shape]"))
+    job = prepare_job(_compose(user_dir / "conf", "estimator=centroid", "grid.objects=[l_shape]"))
     assert job.estimator.method == METHOD
     specs = expand_grid(job.cfg, job.objects, estimator=job.estimator)
     assert specs and {s.estimator.method for s in specs} == {METHOD}
@@ -155,7 +150,7 @@ def test_the_command_line_takes_the_users_config_dir(user_dir: Path) -> None:
     script = Path(sys.executable).with_name("comexp")
     cmd = [str(script)] if script.exists() else [sys.executable, "-m", "comexp.cli.run"]
     r = subprocess.run(
-        [*cmd, "--config-dir", str(user_dir / "conf"), "+estimator=centroid"]
+        [*cmd, "--config-dir", str(user_dir / "conf"), "estimator=centroid"]
         + ["--cfg", "job", "-p", "estimator.method"],
         capture_output=True,
         text=True,
@@ -167,10 +162,8 @@ def test_the_command_line_takes_the_users_config_dir(user_dir: Path) -> None:
 
 
 def test_an_episode_runs_the_plugin(user_dir: Path) -> None:
-    from test_episode import KinematicSim, spec_for
+    from test_episode import KinematicSim, run_kinematic, spec_for
 
-    from comexp.experiment.episode import run_episode
-
-    res = run_episode(spec_for(method=METHOD), KinematicSim())
+    res = run_kinematic(spec_for(method=METHOD), KinematicSim())
     assert res.status == "ok", (res.failure, res.detail)
     assert res.n_pushes > 0 and len(sys.modules["my_estimators"].CALLS) > 1

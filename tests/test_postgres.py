@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_cli import FAKE, Ran, comexp, comexp_in_process
+from test_cli import SCRIPTED, Ran, comexp, comexp_in_process
 
 from comexp.results.schema import SCHEMA_VERSION
 from comexp.results.store import ResultsDB, redact_url
@@ -234,7 +234,9 @@ def test_two_concurrent_jobs_store_every_episode_once(pg: PgServer, tmp_path: Pa
     def job(name: str) -> None:
         d = tmp_path / name
         d.mkdir()
-        results[name] = comexp(d, *grid, f"db={url}", FAKE_RUN_SLEEP_S="0.05", **FAKE)
+        results[name] = comexp(
+            d, *grid, f"db={url}", *SCRIPTED, "+backend.options.build_sleep_s=0.05"
+        )
 
     threads = [threading.Thread(target=job, args=(n,)) for n in ("a", "b")]
     for t in threads:

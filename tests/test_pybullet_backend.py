@@ -8,9 +8,12 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from comexp.experiment.simulator import PushStatus, contact_push, make_simulator
-from comexp.method.geometry import box_object, prism_object
-from comexp.method.scene import FloorSpec, Pose2D, PushCommand, SceneSpec
+from comexp.experiment.config import make_simulator
+from comexp.method.frames import Pose2D
+from comexp.sim.bodies import box_object, prism_object
+from comexp.sim.contact import contact_push
+from comexp.sim.protocol import push
+from comexp.sim.scene import FloorSpec, PushCommand, PushStatus, SceneSpec
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +76,7 @@ def test_two_instances_coexist_and_agree():
         outs = []
         for s in (a, b, a, b):
             s.build(scene)
-            outs.append(s.push(cmd))
+            outs.append(push(s, cmd))
         assert all(o == outs[0] for o in outs)
         assert outs[0].ok and abs(outs[0].rotation_deg) > 1.0
     finally:
@@ -85,9 +88,9 @@ def test_pusher_is_parked_out_of_view_after_a_push(sim):
     scene = SceneSpec(FloorSpec(0.5, 0.5), box_object(0.08, 0.05, 0.03))
     sim.build(scene)
     empty = sim.render_depth().depth_m.copy()
-    out = sim.push(contact_push((-0.04, 0.0), (1.0, 0.0), 0.03, 0.04, scene.pusher.radius_m))
+    out = push(sim, contact_push((-0.04, 0.0), (1.0, 0.0), 0.03, 0.04, scene.pusher.radius_m))
     assert out.ok and out.contact_made
-    xy = sim._pusher_xy()
+    xy = sim.pusher_xy()
     uv = scene.camera.model().world_to_pixel(xy[0], xy[1], 0.1)
     assert not (0 <= uv[0] < 224 and 0 <= uv[1] < 224)
     # the image only changed where the object moved: nothing of the pusher is left in view
@@ -106,7 +109,7 @@ def test_blocked_start_leaves_the_scene_untouched(sim):
     before = sim.object_state()
     # axis outside the footprint but within one radius of its edge: still overlaps
     edge_x = 0.05 + 0.04 * math.cos(0.3)
-    out = sim.push(PushCommand((edge_x + 0.002, 0.0), (-1.0, 0.0), 0.03, 0.4))
+    out = push(sim, PushCommand((edge_x + 0.002, 0.0), (-1.0, 0.0), 0.03, 0.4))
     assert out.status is PushStatus.PATH_BLOCKED and out.steps == 0
     assert sim.object_state() == before
 
@@ -115,13 +118,15 @@ def test_free_rigid_pusher_keeps_its_height_and_orientation(sim):
     """The pusher is a heavy free body driven by velocity: gravity is cancelled and contact
     torques must not tilt it, or it would touch the floor or push at the wrong height (a
     sphere at the line contact's resultant height, `pusher_contact_height_m`)."""
-    from comexp.experiment.simulator import pusher_contact_height_m
+    from comexp.sim.contact import pusher_contact_height_m
 
     scene = SceneSpec(FloorSpec(1.0, 1.0), box_object(0.08, 0.05, 0.03, mu_pusher=1.0))
     z0 = pusher_contact_height_m(scene.pusher, scene.obj.height_m)
     for speed in (0.4, 0.04):
         sim.build(scene)
-        out = sim.push(contact_push((-0.04, 0.015), (1.0, 0.0), 0.03, speed, scene.pusher.radius_m))
+        out = push(
+            sim, contact_push((-0.04, 0.015), (1.0, 0.0), 0.03, speed, scene.pusher.radius_m)
+        )
         assert out.ok and out.contact_made
         pos, quat = pb.getBasePositionAndOrientation(sim._pusher, physicsClientId=sim._cid)
         assert abs(pos[2] - z0) < 1e-6
@@ -154,7 +159,7 @@ def test_the_pusher_carries_none_of_the_objects_weight(sim, mu_pusher, monkeypat
 
     sim._step_once = step
     try:
-        out = sim.push(cmd)
+        out = push(sim, cmd)
     finally:
         del sim._step_once
     assert out.status is PushStatus.OK and len(shares) > 20
@@ -171,7 +176,7 @@ def _box_push(sim, mu: float, speed: float):
     sim.build(SceneSpec(FloorSpec(mu, 0.5 * mu), obj, initial_pose=pose))
     contact = pose.to_world(np.array([-0.04, 0.012]))
     normal = (math.cos(0.3), math.sin(0.3))
-    return sim.push(contact_push(contact, normal, 0.03, speed, 0.005))
+    return push(sim, contact_push(contact, normal, 0.03, speed, 0.005))
 
 
 @pytest.fixture()
@@ -217,7 +222,7 @@ def test_the_compiled_steps_are_the_python_steps(model_sim, monkeypatch, mu, spe
         monkeypatch.setattr(model_sim, "build", build)
         out = _box_push(model_sim, mu, speed)
         assert (model_sim._handle is not None) == compiled  # two paths compared, not one
-        runs.append((out, rows, model_sim.object_state(), model_sim._pusher_xy().tolist()))
+        runs.append((out, rows, model_sim.object_state(), model_sim.pusher_xy().tolist()))
     (compiled, rows_c, end_c, q_c), (python, rows_p, end_p, q_p) = runs
     assert compiled.ok and compiled.contact_made and abs(compiled.true_rotation_deg) > 1.0
     assert compiled == python and end_c == end_p and q_c == q_p

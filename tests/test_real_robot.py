@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import shapely
 
-from comexp.estimator import (
+from comexp.method.estimator import (
     EstimatorSettings,
     ObservedPush,
     WorldPush,
@@ -20,7 +20,7 @@ from comexp.estimator import (
     outline_contacts,
     region_from_outline,
 )
-from comexp.scene import Pose2D
+from comexp.method.frames import Pose2D
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "real_robot.md"
 PX = 0.0025  # grid spacing (m) of the frame-equivalence cases

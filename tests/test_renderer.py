@@ -1,6 +1,6 @@
 """`camera.renderer`: the engines' own renderers and the exact ray cast see the same object.
 
-The ray cast (`Simulator._raycast_depth`, planar's camera) is the engines' default because it
+The ray cast (`Simulator.raycast_depth`, planar's camera) is the engines' default because it
 is the cheaper of the two (docs/performance.md); this is the test that it agrees with what the
 engine draws: the same object mask up to the pixels on its edge, and the same measured
 rotation of a push within the tracker's noise.
@@ -11,11 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from comexp.experiment.episode import EpisodeSpec, run_episode
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeSpec
+from comexp.experiment.config import make_simulator
 from comexp.experiment.objects import com_point, load_objects
-from comexp.experiment.simulator import make_simulator
+from comexp.method.frames import Pose2D
 from comexp.method.observation import object_mask
-from comexp.method.scene import FloorSpec, Pose2D, SceneSpec
+from comexp.sim.scene import FloorSpec, SceneSpec
 
 ENGINES = ("pybullet", "mujoco")
 OBJECTS = ("l_shape", "triangle_right_11x7", "ellipse_12x7", "u_shape")
@@ -93,11 +95,14 @@ def test_engine_and_raycast_measure_the_same_rotations(backend: str) -> None:
 
 @pytest.mark.parametrize("backend", ENGINES)
 def test_the_renderer_is_part_of_the_identity_but_older_rows_keep_theirs(backend: str) -> None:
-    from comexp.experiment.simulator import physics_identity
+    from comexp.backends.physics_settings import physics_identity
+    from comexp.experiment.config import load_backend
 
-    before = physics_identity(backend, options={"floor_friction": "model"})  # no such option
-    engine = physics_identity(backend, options={"floor_friction": "model", "renderer": "engine"})
-    raycast = physics_identity(backend, options={"floor_friction": "model", "renderer": "raycast"})
+    target = load_backend(backend)._target_
+    before = physics_identity(backend, target, options={"floor_friction": "model"})  # no option
+    model = {"floor_friction": "model"}
+    engine = physics_identity(backend, target, options={**model, "renderer": "engine"})
+    raycast = physics_identity(backend, target, options={**model, "renderer": "raycast"})
     assert engine == before and raycast != engine
 
 
@@ -105,12 +110,12 @@ def test_the_renderer_is_part_of_the_identity_but_older_rows_keep_theirs(backend
 def test_the_job_hands_its_renderer_to_the_simulator(renderer: str) -> None:
     from hydra import compose, initialize_config_module
 
-    from comexp.experiment.config import prepare_job, simulator_options
+    from comexp.experiment.config import prepare_job
 
     with initialize_config_module("comexp.conf", version_base="1.3"):
         overrides = ["backend=mujoco", f"camera.renderer={renderer}", "db=/tmp/unused.db"]
         cfg = compose("config", overrides=overrides, return_hydra_config=True)
-    opts = simulator_options(prepare_job(cfg).cfg)
-    assert opts["renderer"] == renderer
-    with make_simulator("mujoco", **opts) as sim:
+    job = prepare_job(cfg)
+    assert job.simulator.options["renderer"] == renderer
+    with job.simulator.make() as sim:
         assert sim.renderer == renderer

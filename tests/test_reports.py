@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from test_db import make_result
 
-from comexp.experiment.episode import EpisodeResult, EstimatorSettings
+from comexp.episode.task import EpisodeResult
+from comexp.method.estimator import EstimatorSettings
 from comexp.results import paper
 from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import episode_key

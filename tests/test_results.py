@@ -17,9 +17,8 @@ from test_db import make_result
 
 import comexp as package
 from comexp.cli.query import main as dbcli
-from comexp.experiment.episode import EstimatorSettings
-from comexp.results.api import spec_from_json
-from comexp.results.identity import canonical_json, episode_key
+from comexp.method.estimator import EstimatorSettings
+from comexp.results.identity import canonical_json, episode_key, spec_from_json
 from comexp.results.plots import reconstruct_regions
 from comexp.results.reports import condition_tables
 from comexp.results.store import ResultsDB
@@ -68,9 +67,11 @@ def test_replay_equals_the_stored_episode(job_db: Path) -> None:
 def test_replay_runs_a_native_episode_with_native_friction(tmp_path: Path) -> None:
     """`backend.floor_friction` is in the physics identity only as a hash: replay must find
     it, or a `native` episode re-runs with the model's friction (the bug this catches)."""
-    from comexp.experiment.episode import EpisodeSpec, run_episode
+    from comexp.backends.physics_settings import physics_identity
+    from comexp.episode.loop import run_episode
+    from comexp.episode.task import EpisodeSpec
+    from comexp.experiment.config import make_simulator
     from comexp.experiment.objects import load_objects
-    from comexp.experiment.simulator import make_simulator, physics_identity
 
     obj = load_objects()["square_7"]
     spec = EpisodeSpec.for_object(
@@ -87,7 +88,9 @@ def test_replay_runs_a_native_episode_with_native_friction(tmp_path: Path) -> No
         camera_fps=0.0,
         estimator=EstimatorSettings(n_push=2),
         physics=physics_identity(
-            "pybullet", options={"floor_friction": "native", "renderer": "raycast"}
+            "pybullet",
+            "comexp.backends.pybullet_sim.PybulletSimulator",
+            options={"floor_friction": "native", "renderer": "raycast"},
         ),
     )
     with make_simulator("pybullet", floor_friction="native") as sim:

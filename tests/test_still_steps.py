@@ -1,4 +1,4 @@
-"""The engines' still steps (`Simulator._steps_still`, `StillJumps`): an object at rest by the
+"""The engines' still steps (`Simulator.steps_still`, `StillJumps`): an object at rest by the
 settle rule, the pusher clear of it, is not stepped; time passes, the object's state is kept,
 the pusher ends where the steps would leave it. planar's own still steps are in test_planar.py.
 """
@@ -11,10 +11,13 @@ import numpy as np
 import pytest
 
 from comexp.backends.physics_settings import STILL_JUMPS
-from comexp.experiment.clear_steps import clear_steps
-from comexp.experiment.simulator import contact_push, make_simulator
-from comexp.method.geometry import box_object
-from comexp.method.scene import FloorSpec, Pose2D, SceneSpec
+from comexp.experiment.config import make_simulator
+from comexp.method.frames import Pose2D
+from comexp.sim.bodies import box_object
+from comexp.sim.clear_steps import clear_steps
+from comexp.sim.contact import contact_push
+from comexp.sim.protocol import push
+from comexp.sim.scene import FloorSpec, SceneSpec
 
 ENGINES = ["pybullet", "mujoco"]
 
@@ -42,8 +45,8 @@ def _approach(sim, gap_m: float, n: int, step_m: float) -> tuple[np.ndarray, np.
     pose = sim.object_state().pose
     inward = np.array([math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)])
     face = pose.to_world(np.array([-0.04, 0.0]))
-    start = face - inward * (sim._pusher_radius_m() + gap_m)
-    sim._place_pusher(start)
+    start = face - inward * (sim.pusher_radius_m() + gap_m)
+    sim.place_pusher(start)
     return start, start + step_m * np.arange(1, n + 1)[:, None] * inward
 
 
@@ -52,20 +55,20 @@ def test_the_count_is_the_clear_steps_of_a_resting_object(sim):
     kernel planar uses too); none when the object moves or the pusher starts within reach."""
     _settled(sim, _box_scene())
     start, targets = _approach(sim, 0.01, 400, 4e-5)
-    poly = sim.object_state().pose.to_world(sim._outline_m())
-    r = sim._pusher_radius_m()
+    poly = sim.object_state().pose.to_world(sim.outline_m())
+    r = sim.pusher_radius_m()
     expected = clear_steps(start[0], start[1], targets, poly, r, STILL_JUMPS.margin_m)
     assert 0 < expected < len(targets)  # it stops short of the object
-    assert sim._steps_still(targets) == expected
+    assert sim.steps_still(targets) == expected
     # the last counted step ends farther than the margin from the outline
     end = targets[expected - 1]
     gap = min(_segment_distance(end, poly[i], poly[(i + 1) % len(poly)]) for i in range(4))
     assert gap - r > STILL_JUMPS.margin_m
     sim.set_object_velocity((0.01, 0.0, 0.0), (0.0, 0.0, 0.0))  # 1 cm/s: not at rest
-    assert sim._steps_still(targets) == 0
+    assert sim.steps_still(targets) == 0
     _settled(sim, _box_scene())
     _, from_the_face = _approach(sim, 0.0, 10, 4e-5)  # within reach from the start
-    assert sim._steps_still(from_the_face) == 0
+    assert sim.steps_still(from_the_face) == 0
 
 
 def _segment_distance(p, a, b) -> float:
@@ -77,14 +80,14 @@ def _segment_distance(p, a, b) -> float:
 def test_a_jump_keeps_the_object_and_moves_the_pusher_without_stepping(sim, monkeypatch):
     _settled(sim, _box_scene())
     _, targets = _approach(sim, 0.01, 200, 4e-5)
-    n = sim._steps_still(targets)
+    n = sim.steps_still(targets)
     before = sim.object_state()
     stepped: list[int] = []
-    monkeypatch.setattr(sim, "_advance", lambda t: stepped.append(len(t)) or (False, 0.0))
-    assert sim._advance_still(targets[:n]) is False
+    monkeypatch.setattr(sim, "advance", lambda t: stepped.append(len(t)) or (False, 0.0))
+    assert sim.advance_still(targets[:n]) is False
     assert stepped == []  # the engine was not stepped
     assert sim.object_state() == before  # to the bit
-    assert np.array_equal(sim._pusher_xy(), targets[n - 1])
+    assert np.array_equal(sim.pusher_xy(), targets[n - 1])
 
 
 @pytest.mark.parametrize("speed_m_s", [0.04, 0.4])
@@ -98,17 +101,17 @@ def test_a_push_with_its_still_steps_jumped_is_the_stepped_push(sim, monkeypatch
     contact = scene.initial_pose.to_world(np.array([outline[:, 0].min(), 0.012]))
     yaw = scene.initial_pose.yaw_rad
     cmd = contact_push(contact, (math.cos(yaw), math.sin(yaw)), 0.03, speed_m_s, 0.005)
-    real_advance = sim._advance
+    real_advance = sim.advance
 
-    def push(jumps: bool):
+    def run_push(jumps: bool):
         monkeypatch.setattr(sim, "still_jumps", STILL_JUMPS if jumps else None)
         steps: list[int] = []
-        monkeypatch.setattr(sim, "_advance", lambda t: steps.append(len(t)) or real_advance(t))
+        monkeypatch.setattr(sim, "advance", lambda t: steps.append(len(t)) or real_advance(t))
         _settled(sim, scene)
-        out = sim.push(cmd)
+        out = push(sim, cmd)
         return out, sum(steps)
 
-    (jumped, n_jumped), (stepped, n_stepped) = push(True), push(False)
+    (jumped, n_jumped), (stepped, n_stepped) = run_push(True), run_push(False)
     assert jumped.ok and stepped.ok and jumped.contact_made
     assert jumped.true_rotation_deg == pytest.approx(stepped.true_rotation_deg, abs=0.1)
     assert abs(jumped.true_rotation_deg) > 1.0  # a lever push: it turns
@@ -125,11 +128,11 @@ def test_no_jump_from_a_tilted_object(sim, monkeypatch):
     _settled(sim, _box_scene())
     _, targets = _approach(sim, 0.01, 200, 4e-5)
     flat = sim.object_state()
-    assert flat.tilt_deg < STILL_JUMPS.max_tilt_deg and sim._steps_still(targets) > 0
+    assert flat.tilt_deg < STILL_JUMPS.max_tilt_deg and sim.steps_still(targets) > 0
     for tilt_deg, jumps in ((0.5 * STILL_JUMPS.max_tilt_deg, True), (0.2, False), (0.75, False)):
         tilted = dataclasses.replace(flat, roll_rad=math.radians(tilt_deg))
         monkeypatch.setattr(sim, "object_state", lambda st=tilted: st)
-        assert (sim._steps_still(targets) > 0) is jumps, tilt_deg
+        assert (sim.steps_still(targets) > 0) is jumps, tilt_deg
 
 
 def test_the_signed_distance_is_shapelys_on_every_builtin_outline():
@@ -138,8 +141,8 @@ def test_the_signed_distance_is_shapelys_on_every_builtin_outline():
     points inside, outside, on the extended edges' lines and near the vertices."""
     import shapely
 
-    from comexp.experiment.contact import point_polygon_distance
-    from comexp.objects import load_objects
+    from comexp.experiment.objects import load_objects
+    from comexp.sim.contact import point_polygon_distance
 
     rng = np.random.default_rng(3)
     for name, obj in load_objects().items():

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-from comexp.experiment.config import ConfigError, prepare_job
-from comexp.experiment.episode import EpisodeSpec, build_scene
-from comexp.experiment.simulator import Frame, at_rest, contact_push, make_simulator
+from comexp.episode.task import EpisodeSpec, build_scene
+from comexp.experiment.config import ConfigError, make_simulator, prepare_job
+from comexp.method.frames import Pose2D
 from comexp.method.observation import (
     mask_pusher,
     object_mask,
@@ -22,10 +22,11 @@ from comexp.method.observation import (
     observe_boundary,
     perceive_first,
 )
-from comexp.method.scene import Pose2D
 from comexp.method.tracking import PoseTracker
 from comexp.results.schema import SCHEMA_VERSION
 from comexp.results.store import ResultsDB
+from comexp.sim.contact import contact_push
+from comexp.sim.protocol import Frame, at_rest, push
 
 BOX_CM = ((-4.0, -2.5), (4.0, -2.5), (4.0, 2.5), (-4.0, 2.5))
 
@@ -52,7 +53,7 @@ def _big_turn(sim, on_frame=None, interval_s: float = 0.0):
     by -121 deg in the planar model (measured), more than the rectangle's half-symmetry."""
     sim.build(replace(build_scene(box_spec()), initial_pose=Pose2D(0.0, 0.0, 0.0)))
     cmd = contact_push((-0.04, 0.02), (1.0, 0.0), 0.03, 0.4, 0.005)
-    return sim.push(cmd, on_frame=on_frame, frame_interval_s=interval_s)
+    return push(sim, cmd, on_frame=on_frame, frame_interval_s=interval_s)
 
 
 def test_frames_only_while_the_object_moves_and_the_physics_is_unchanged():
@@ -78,7 +79,7 @@ def test_frames_only_while_the_object_moves_and_the_physics_is_unchanged():
     assert len(seen) < watched.sim_time_s * 30
     # a push that misses the object never moves it: no frame
     sim.build(replace(build_scene(box_spec()), initial_pose=Pose2D(0.0, 0.0, 0.0)))
-    missed = sim.push(contact_push((-0.04, 0.06), (1.0, 0.0), 0.03, 0.4, 0.005), seen.append, 0.01)
+    missed = push(sim, contact_push((-0.04, 0.06), (1.0, 0.0), 0.03, 0.4, 0.005), seen.append, 0.01)
     assert missed.n_frames == 0 and not missed.contact_made
 
 
@@ -123,7 +124,7 @@ def test_a_still_object_is_reported_at_the_frames_it_is_not_rendered():
     frames.clear()
     sim.build(replace(build_scene(box_spec()), initial_pose=Pose2D(0.0, 0.0, 0.0)))
     cmd = contact_push((-0.04, 0.02), (1.0, 0.0), 0.03, 0.4, 0.005)
-    again = sim.push(cmd, lambda f: frames.append(f.t_s), 1 / 30, on_still=still.append)
+    again = push(sim, cmd, lambda f: frames.append(f.t_s), 1 / 30, on_still=still.append)
     assert frames == plain_frames and again.steps == out.steps  # nothing else changes
     assert still and not set(still) & set(frames)
     ticks = sorted(frames + still)
@@ -176,7 +177,7 @@ def _tracked_big_turn(
         tracker.track(observe_boundary(img, (tracker.last.x_m, tracker.last.y_m)), f.t_s)
 
     cmd = contact_push((-0.04, 0.02), (1.0, 0.0), 0.03, speed_m_s, 0.005)
-    out = sim.push(cmd, on_frame, 1 / 30, on_still=tracker.hold, frame_wanted=wanted)
+    out = push(sim, cmd, on_frame, 1 / 30, on_still=tracker.hold, frame_wanted=wanted)
     return out, math.degrees(tracker.fit(observe(sim.render_depth())).pose.yaw_rad), offered, cmd
 
 
@@ -272,7 +273,7 @@ ALIASED = [
 def test_pushes_the_study_once_aliased_are_measured_right(
     name, com_index, com_cm, speed, izz, seed
 ):
-    from comexp.experiment.episode import run_episode
+    from comexp.episode.loop import run_episode
     from comexp.experiment.objects import load_objects
 
     spec = EpisodeSpec.for_object(
@@ -308,10 +309,10 @@ def test_engines_render_the_pusher_and_the_mask_removes_exactly_it(backend):
         ]:
             sim.build(replace(build_scene(box_spec(backend)), initial_pose=pose))
             alone = object_mask(sim.render_depth())
-            sim._place_pusher(xy)
+            sim.place_pusher(xy)
             img = sim.render_depth()
             assert object_mask(img).sum() > alone.sum() + 5  # the pusher is drawn, joined
-            masked = object_mask(mask_pusher(img, xy, sim._pusher_radius_m()))
+            masked = object_mask(mask_pusher(img, xy, sim.pusher_radius_m()))
             assert np.array_equal(masked, alone)
     finally:
         sim.close()
@@ -400,7 +401,7 @@ def test_engine_tracking_frames_are_the_object_window_of_the_full_image(backend)
             if tilt_deg:
                 _tilt(sim, pose, tilt_deg)
             if pusher_xy is not None:
-                sim._place_pusher(pusher_xy)
+                sim.place_pusher(pusher_xy)
             full = sim.render_depth()
             crop = sim.render_tracking_depth()
             fc, cc = full.camera, crop.camera
@@ -442,7 +443,7 @@ def test_engine_tracking_frames_have_the_method_s_geometry(backend):
         moved = Pose2D(0.03, 0.06, math.radians(25.0))
         sim.build(replace(build_scene(box_spec(backend)), initial_pose=moved))
         crop = sim.render_tracking_depth()
-        cy_px = sim._camera_model().cy_px
+        cy_px = sim.camera_model().cy_px
         v0 = cy_px - crop.camera.cy_px  # the window's top row in the full image
         assert v0 + crop.depth_m.shape[0] < cy_px  # +y: above the centre
         view = observe_boundary(crop, (0.0, 0.0))

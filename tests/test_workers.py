@@ -1,24 +1,28 @@
 """The Ray side with a cheap fake runner and simulator: every episode exactly once, dying
 workers retried, results streamed to the store before the end, interrupted runs keep results.
 
-The fakes live in this module and are named by dotted path (`test_workers:fake_run`), so the
-worker processes import them; the tests directory is put on their PYTHONPATH.
+The fakes live in this module, which the worker processes import (the tests directory is on
+their PYTHONPATH): the simulator by its class path (`FAKE`, as a backend's `_target_`), the
+runner as the function itself (Ray sends it by reference).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from pathlib import Path
 
 import pytest
 
-from comexp.experiment.episode import EpisodeResult, EpisodeSpec
+from comexp.episode.task import EpisodeResult, EpisodeSpec
+from comexp.sim.simulator import SimulatorSpec
+from comexp.workers.settings import PoolSettings
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
-RUNNER = "test_workers:fake_run"
-FACTORY = "test_workers:FakeSimulator"
+FAKE = SimulatorSpec("fake", "test_workers.FakeSimulator")
+BROKEN = SimulatorSpec("broken", "test_workers.BrokenSimulator")
 GATE_WAIT_S = 10.0  # only a broken run waits this long
 
 
@@ -28,11 +32,8 @@ GATE_WAIT_S = 10.0  # only a broken run waits this long
 class FakeSimulator:
     builds = 0
 
-    def __init__(self, backend: str, closed_marker_dir: str | None = None, **options) -> None:
+    def __init__(self, settings=None, closed_marker_dir: str | None = None, **options) -> None:
         # options: the backend's own (a command-line job's, tests/test_cli.py)
-        if backend == "broken":
-            raise RuntimeError("engine failed to start")
-        self.backend = backend
         self.closed = False
         self.closed_marker_dir = closed_marker_dir  # close() leaves a file there
         FakeSimulator.builds += 1
@@ -41,6 +42,11 @@ class FakeSimulator:
         self.closed = True
         if self.closed_marker_dir is not None:
             Path(self.closed_marker_dir, f"closed-{os.getpid()}").touch()
+
+
+class BrokenSimulator(FakeSimulator):
+    def __init__(self, settings=None, **options) -> None:
+        raise RuntimeError("engine failed to start")
 
 
 def fake_run(
@@ -137,7 +143,7 @@ def spec_ids(specs: list[EpisodeSpec]) -> list[tuple[str, int]]:
 def test_worker_turns_exceptions_into_failed_results() -> None:
     from comexp.workers.actor import EpisodeWorker
 
-    w = EpisodeWorker("fake", runner=RUNNER, simulator_factory=FACTORY)
+    w = EpisodeWorker(FAKE, runner=fake_run)
     specs = make_specs(2) + make_specs(1, "raise") + make_specs(2, start=2)
     before = FakeSimulator.builds
     out = w.run_batch(specs)
@@ -145,15 +151,6 @@ def test_worker_turns_exceptions_into_failed_results() -> None:
     assert out[2].failure == "error" and "ValueError: boom" in out[2].detail
     assert FakeSimulator.builds == before + 1  # a fresh simulator after the exception
     w.close()
-
-
-def test_import_dotted_forms() -> None:
-    from comexp.workers.actor import import_dotted
-
-    assert import_dotted("os.path:join") is os.path.join
-    assert import_dotted("os.path.join") is os.path.join
-    with pytest.raises(ValueError):
-        import_dotted("join")
 
 
 # --- the pool on a real (local) Ray -------------------------------------------------------
@@ -165,19 +162,19 @@ def ray_session(local_ray):
     yield
 
 
-def _pool(**kw):
+def _pool(simulator=FAKE, runner=fake_run, **settings):
+    """A pool of 2 fake workers; `settings`: `PoolSettings`' (no episode time limit)."""
     from comexp.workers.pool import EpisodePool
 
-    kw.setdefault("runner", RUNNER)
-    kw.setdefault("simulator_factory", FACTORY)
-    return EpisodePool("fake", 2, **kw)
+    settings.setdefault("episode_timeout_s", 0.0)
+    return EpisodePool(simulator, 2, PoolSettings(**settings), runner=runner)
 
 
 def test_pool_runs_every_episode_once_and_streams(ray_session) -> None:
     specs = make_specs(40)
     got: list[EpisodeResult] = []
     yields = 0
-    with _pool(batch_size=4, runner_kwargs={"sleep_s": 0.005}) as pool:
+    with _pool(batch_size=4, runner=functools.partial(fake_run, sleep_s=0.005)) as pool:
         for chunk in pool.run(specs):
             yields += 1
             got.extend(chunk)
@@ -193,7 +190,7 @@ def test_pool_workers_use_one_cpu_each(ray_session) -> None:
     """A worker is one CPU: its libraries' thread pools run on one thread. OpenCV's pool
     ignores OMP_NUM_THREADS; with two threads its idle one spins on the other worker's CPU
     (`use_one_cpu`)."""
-    with _pool(runner="test_workers:threads_run", batch_size=2) as pool:
+    with _pool(runner=threads_run, batch_size=2) as pool:
         got = [r for chunk in pool.run(make_specs(8)) for r in chunk]
     assert len({r.worker for r in got}) == 2
     assert {r.detail for r in got} == {"opencv 1 omp 1"}
@@ -202,7 +199,8 @@ def test_pool_workers_use_one_cpu_each(ray_session) -> None:
 def test_closing_the_pool_closes_every_worker_s_simulator(ray_session, tmp_path) -> None:
     """Workers are ended by a kill, which runs no cleanup: the pool has each close its
     simulator first (pybullet's scene files in the temp dir were left behind)."""
-    pool = _pool(batch_size=2, backend_options={"closed_marker_dir": str(tmp_path)})
+    marked = SimulatorSpec("fake", FAKE.target, {"closed_marker_dir": str(tmp_path)})
+    pool = _pool(marked, batch_size=2)
     with pool:
         got = [r for chunk in pool.run(make_specs(8)) for r in chunk]
     pids = {r.detail.split()[1] for r in got}
@@ -215,24 +213,27 @@ def test_a_job_pool_carries_its_workers_to_the_next_job_with_the_same_arguments(
 ) -> None:
     from comexp.workers.pool import close_job_pool, job_pool
 
-    args = dict(runner=RUNNER, simulator_factory=FACTORY, batch_size=2)
-    first = job_pool("fake", 2, **args)
+    # the job's own runner is the episode loop: a fake simulator whose `build` answers as
+    # `fake_run` does would be the job's path; here the pool's reuse is what is tested
+    settings = PoolSettings(batch_size=2)
+    first = job_pool(FAKE, 2, settings, runner=fake_run)
     pids = [{r.detail for c in first.run(make_specs(6)) for r in c} for _ in range(2)]
-    assert job_pool("fake", 2, **args) is first
+    assert job_pool(FAKE, 2, PoolSettings(batch_size=2), runner=fake_run) is first
     again = {r.detail for c in first.run(make_specs(6)) for r in c}
     assert pids[0] == pids[1] == again and len(again) == 2  # the same two processes
-    other = job_pool("fake", 2, **{**args, "batch_size": 3})  # other arguments: a new pool
+    other = job_pool(FAKE, 2, PoolSettings(batch_size=3), runner=fake_run)  # a new pool
     assert other is not first and first._slots == []  # the last one closed
     assert {r.detail for c in other.run(make_specs(6)) for r in c}.isdisjoint(again)
     close_job_pool()
-    assert other._slots == [] and job_pool("fake", 2, **args) is not first
+    assert other._slots == [] and job_pool(FAKE, 2, settings, runner=fake_run) is not first
     close_job_pool()
 
 
 def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None:
     specs = make_specs(10) + make_specs(1, "die_once") + make_specs(10, start=10)
     got: list[EpisodeResult] = []
-    with _pool(batch_size=4, runner_kwargs={"marker_dir": str(tmp_path)}) as pool:
+    runner = functools.partial(fake_run, marker_dir=str(tmp_path))
+    with _pool(batch_size=4, runner=runner) as pool:
         for chunk in pool.run(specs):
             got.extend(chunk)
         assert pool.stats.actor_restarts == 1
@@ -245,7 +246,8 @@ def test_pool_retries_the_batch_of_a_dying_worker(ray_session, tmp_path) -> None
 def test_pool_gives_up_on_an_episode_that_always_kills_its_worker(ray_session, tmp_path) -> None:
     specs = make_specs(3) + make_specs(1, "die_always") + make_specs(3, start=3)
     got: list[EpisodeResult] = []
-    with _pool(batch_size=4, max_retries=0, runner_kwargs={"marker_dir": str(tmp_path)}) as pool:
+    runner = functools.partial(fake_run, marker_dir=str(tmp_path))
+    with _pool(batch_size=4, max_retries=0, runner=runner) as pool:
         for chunk in pool.run(specs):
             got.extend(chunk)
         # batch dies once (no retry) -> split into 4 singles -> the poison one dies once more
@@ -259,7 +261,7 @@ def test_pool_gives_up_on_an_episode_that_always_kills_its_worker(ray_session, t
 def test_pool_reports_workers_that_cannot_start(ray_session) -> None:
     from comexp.workers.pool import EpisodePool, PoolError
 
-    pool = EpisodePool("broken", 1, runner=RUNNER, simulator_factory=FACTORY)
+    pool = EpisodePool(BROKEN, 1, runner=fake_run)
     with pytest.raises(PoolError, match="engine failed to start"):
         pool.start()
 
@@ -280,7 +282,7 @@ def test_run_and_store_writes_while_running(ray_session, tmp_path) -> None:
         return len(results)
 
     kwargs = {"sleep_s": 0.01, "gate_file": str(gate), "gated_from": 22}
-    with _pool(batch_size=2, runner_kwargs=kwargs) as pool:
+    with _pool(batch_size=2, runner=functools.partial(fake_run, **kwargs)) as pool:
         stats = run_and_store(pool, specs, store, flush_every=4, flush_interval_s=60)
     assert stats.failed == 0, stats.failures  # the gated batch did not time out
     assert stats.done == stats.stored == 24
@@ -299,7 +301,7 @@ class _FakePool:
         self.exc = exc
 
     def run(self, specs):
-        sim = FakeSimulator("x")
+        sim = FakeSimulator()
         for i in range(0, len(specs), 3):
             if self.fail_after is not None and i // 3 == self.fail_after:
                 raise self.exc
@@ -331,7 +333,7 @@ def test_run_and_store_counts_failures() -> None:
         def run(self, specs):
             from comexp.workers.actor import EpisodeWorker
 
-            w = EpisodeWorker("fake", runner=RUNNER, simulator_factory=FACTORY)
+            w = EpisodeWorker(FAKE, runner=fake_run)
             yield w.run_batch(specs)
 
     progress = Progress(len(specs), "t", tty=False, every_s=0)
@@ -342,8 +344,8 @@ def test_run_and_store_counts_failures() -> None:
 
 @pytest.mark.parametrize(("env", "bar"), [("bar", True), ("log", False), ("", False)])
 def test_comexp_progress_chooses_the_bar_off_a_terminal(monkeypatch, env: str, bar: bool) -> None:
-    """`COMEXP_PROGRESS=bar` (what `comexp.run` sets for its child, whose stderr is a pipe)
-    draws tqdm's bar; `log` or unset off a terminal: the periodic log lines."""
+    """`COMEXP_PROGRESS=bar` draws tqdm's bar where stderr is no terminal (a pipe, a log
+    file); `log` or unset off a terminal: the periodic log lines."""
     import io
 
     from comexp.workers.driver import Progress

@@ -6,15 +6,14 @@ from __future__ import annotations
 
 import pytest
 
+from comexp.sim.simulator import SimulatorSpec
 from comexp.workers import pool as pool_mod
 from comexp.workers import session
-from comexp.workers.pool import (
-    AUTO,
-    EpisodePool,
-    check_workers,
-    local_ray_cpus,
-    resolve_workers,
-)
+from comexp.workers.pool import EpisodePool, resolve_workers
+from comexp.workers.session import local_ray_cpus
+from comexp.workers.settings import AUTO, check_workers
+
+PLANAR = SimulatorSpec("planar", "comexp.backends.planar_sim.PlanarSimulator")
 
 
 @pytest.mark.parametrize(
@@ -62,7 +61,7 @@ class _StartedError(Exception):
 def test_the_pool_starts_one_worker_per_cluster_cpu(monkeypatch, workers, joined, count):
     monkeypatch.setattr(pool_mod.ray, "cluster_resources", lambda: {"CPU": 6.0})
     monkeypatch.setattr(session, "_joined_cluster", joined)
-    p = EpisodePool("planar", workers)
+    p = EpisodePool(PLANAR, workers)
     assert p.requested_workers == check_workers(workers)
 
     def new_actor():
@@ -76,7 +75,7 @@ def test_the_pool_starts_one_worker_per_cluster_cpu(monkeypatch, workers, joined
 
 def test_a_bad_count_fails_before_ray(monkeypatch) -> None:
     with pytest.raises(ValueError, match="workers must be a count >= 1 or auto, got 0"):
-        EpisodePool("planar", 0)
+        EpisodePool(PLANAR, 0)
 
 
 @pytest.mark.parametrize(
@@ -102,31 +101,3 @@ def test_ensure_ray_starts_a_local_ray_with_the_workers_cpus(
     else:
         assert kw["address"] == address and "num_cpus" not in kw  # the cluster's own CPUs
     assert session.joined_cluster() is joined
-
-
-@pytest.mark.parametrize(
-    ("address", "log_to_driver", "monitor", "log_monitor"),
-    [(None, False, False, False), (None, True, False, None), ("auto", False, None, None)],
-)  # fmt: skip
-def test_a_local_head_starts_without_the_monitors_it_never_uses(
-    monkeypatch, address, log_to_driver, monitor, log_monitor
-) -> None:
-    """A local head skips the autoscaler monitor, and the log monitor unless the driver
-    shows worker output (~50 MB each); a node joining a cluster is left as Ray builds it.
-    The params are those `ray.init` builds through the module attribute, as Ray 2.60 does;
-    the switch is undone after `ray.init`."""
-    parameter = session.ray._private.parameter
-    original = parameter.RayParams
-    built = []
-    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
-    monkeypatch.setattr(session.ray, "is_initialized", lambda: False)
-    monkeypatch.setattr(session.ray, "init", lambda **kw: built.append(parameter.RayParams()))
-    monkeypatch.setattr(session, "worker_env", lambda env=None: {})
-    monkeypatch.setattr(session, "_in_memory_auth_token", lambda: None)
-    monkeypatch.setattr(session, "_ray_started_here", True)  # no atexit hook from a test
-    monkeypatch.setattr(session, "_joined_cluster", False)
-    session.ensure_ray(address, 2, log_to_driver=log_to_driver)
-    (params,) = built
-    assert params.no_monitor is (monitor is False)
-    assert params.include_log_monitor is log_monitor
-    assert parameter.RayParams is original

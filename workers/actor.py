@@ -1,8 +1,9 @@
 """The Ray worker: one process, one simulator, many episodes.
 
 Building an engine costs far more than one episode's scene, so the simulator is created once
-per actor and reused. The episode runner and the simulator factory are dotted paths (resolved
-inside the worker) so that tests can swap in cheap fakes without pickling functions.
+per actor (`SimulatorSpec.make`: the backend's class, imported in the worker) and reused; each
+episode runs through the episode loop (`comexp.episode.loop.run_episode`, the default
+`runner`; the pool's tests hand cheap fakes in its place).
 
 Time limit: an episode that runs longer than `episode_timeout_s` becomes a failed result with
 `failure="timeout"` and the worker carries on with a fresh simulator. Both engines step from
@@ -16,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import importlib
 import math
 import os
 import signal
@@ -30,30 +30,13 @@ from typing import Any
 
 import ray
 
-from comexp.experiment.platform import has_sigalrm
-from comexp.experiment.task import EpisodeResult, EpisodeSpec
+from comexp.backends.physics_settings import physics_identity
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeResult, EpisodeSpec
+from comexp.sim.simulator import SimulatorSpec
 
-DEFAULT_RUNNER = "comexp.experiment.episode:run_episode"
-DEFAULT_SIMULATOR_FACTORY = "comexp.experiment.registry:make_simulator"
-# The test seam of a whole `comexp` process (tests/test_cli.py runs the command with a fake
-# runner and simulator): dotted paths in the environment, read where the pool is made, so that
-# the user-facing config carries no test hooks.
-RUNNER_ENV = "COMEXP_RUNNER"
-SIMULATOR_FACTORY_ENV = "COMEXP_SIMULATOR_FACTORY"
-
-
-def import_dotted(path: str) -> Callable[..., Any]:
-    """`package.module:attr` (or `package.module.attr`) -> the object."""
-    if ":" in path:
-        mod, _, attr = path.partition(":")
-    else:
-        mod, _, attr = path.rpartition(".")
-    if not mod or not attr:
-        raise ValueError(f"not a dotted path: {path!r}")
-    obj: Any = importlib.import_module(mod)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
+# an episode runner: the episode loop, or a test's fake
+Runner = Callable[[EpisodeSpec, Any], EpisodeResult]
 
 
 def failed_result(spec: EpisodeSpec, failure: str, detail: str, wall_s: float) -> EpisodeResult:
@@ -68,6 +51,14 @@ def failed_result(spec: EpisodeSpec, failure: str, detail: str, wall_s: float) -
         wall_s=wall_s,
         detail=detail[-2000:],
     )
+
+
+def has_sigalrm() -> bool:
+    """Whether the per-episode time limit can use SIGALRM (POSIX: Linux and macOS) besides its
+    watchdog. Without it (Windows) the worker keeps only its watchdog thread, which ends a
+    worker whose episode overruns the limit plus its grace period (the pool then retries the
+    batch, and finally stores `worker_died`)."""
+    return hasattr(signal, "SIGALRM") and hasattr(signal, "setitimer")
 
 
 class EpisodeTimeout(BaseException):  # noqa: N818 - a signal, not an error class
@@ -141,28 +132,24 @@ def use_one_cpu() -> None:
 class EpisodeWorker:
     """Plain class (testable without Ray); `RemoteEpisodeWorker` is its actor form.
 
-    `episode_timeout_s` (None or <= 0: no limit) bounds each episode; `kill_grace_s` is how
-    long after that the watchdog waits before ending the process (default: the limit itself,
-    at least 10 s, so a slow but live step always gets the SIGALRM path first).
+    `simulator`: the backend this worker's simulator is made of. `runner(spec, sim)` runs one
+    episode (the episode loop; a test's fake). `episode_timeout_s` (None or <= 0: no limit)
+    bounds each episode; `kill_grace_s` is how long after that the watchdog waits before
+    ending the process (default: the limit itself, at least 10 s, so a slow but live step
+    always gets the SIGALRM path first).
     """
 
     def __init__(
         self,
-        backend: str,
-        runner: str = DEFAULT_RUNNER,
-        simulator_factory: str = DEFAULT_SIMULATOR_FACTORY,
-        runner_kwargs: dict[str, Any] | None = None,
+        simulator: SimulatorSpec,
+        runner: Runner = run_episode,
         episode_timeout_s: float | None = None,
         kill_grace_s: float | None = None,
-        backend_options: dict[str, Any] | None = None,
     ) -> None:
         use_one_cpu()
-        self.backend = backend
-        # the backend's own options (e.g. floor_friction), passed to the simulator factory
-        self.backend_options = dict(backend_options or {})
-        self._runner = import_dotted(runner)
-        self._factory = import_dotted(simulator_factory)
-        self._runner_kwargs = dict(runner_kwargs or {})
+        self.simulator = simulator
+        self.backend = simulator.name
+        self._runner = runner
         ok = episode_timeout_s is not None and math.isfinite(episode_timeout_s)
         self.episode_timeout_s = episode_timeout_s if ok and episode_timeout_s > 0 else None
         self._watchdog: _Watchdog | None = None
@@ -176,7 +163,7 @@ class EpisodeWorker:
                     file=sys.stderr,
                     flush=True,
                 )
-        self._sim: Any = self._factory(backend, **self.backend_options)
+        self._sim: Any = simulator.make()
         self.episodes_run = 0
         self._physics: str | None = None
         info = self.ready()
@@ -208,14 +195,14 @@ class EpisodeWorker:
         result: EpisodeResult | None = None
         try:
             if self._sim is None:
-                self._sim = self._factory(self.backend, **self.backend_options)
+                self._sim = self.simulator.make()
             mismatch = self._physics_mismatch(spec)
             if mismatch:
                 self.episodes_run += 1
                 res = failed_result(spec, "physics_mismatch", mismatch, time.perf_counter() - t0)
                 return dataclasses.replace(res, worker=self._where)
             with self._time_limit(spec):
-                result = self._runner(spec, self._sim, **self._runner_kwargs)
+                result = self._runner(spec, self._sim)
         except EpisodeTimeout:
             if result is None:  # else the alarm raced the return: keep the finished result
                 wall = time.perf_counter() - t0
@@ -235,11 +222,10 @@ class EpisodeWorker:
         if not spec.physics or spec.backend != self.backend:
             return ""
         if self._physics is None:
-            from comexp.experiment.registry import physics_identity
-
+            sim = self.simulator
             try:
-                self._physics = physics_identity(self.backend, options=self.backend_options)
-            except Exception:  # noqa: BLE001 - a fake backend in tests has no identity
+                self._physics = physics_identity(sim.name, sim.target, options=dict(sim.options))
+            except ValueError:  # a fake backend in tests has no identity
                 self._physics = ""
         if self._physics and self._physics != spec.physics:
             return f"this worker runs {self._physics}, the episode asks for {spec.physics}"

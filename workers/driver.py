@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from comexp.experiment.task import EpisodeResult, EpisodeSpec
+from comexp.episode.task import EpisodeResult, EpisodeSpec
 
 from .pool import EpisodePool
 

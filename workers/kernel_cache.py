@@ -11,10 +11,9 @@ only loads them (1.0 - 1.3 s per backend, once per driver process).
 It runs beside Ray's start (`meanwhile`: the head's processes, ~2 s; the workers start after
 it), which hides the ~1 s it takes with a warm cache; the compiler's peak on a cold one never
 meets the workers' memory. Only for workers on this machine (callers skip it for a cluster,
-whose nodes have caches of their own), and only for the real episode runner and simulators:
-the test seams (`COMEXP_RUNNER`, `COMEXP_SIMULATOR_FACTORY`) run fakes that compile nothing. A
-child that fails or overruns is a warning, never an error: the workers then compile for
-themselves, as they always could.
+whose nodes have caches of their own), and only for the built-in backends, whose kernels it
+knows (a plug-in backend's workers compile what they use). A child that fails or overruns is a
+warning, never an error: the workers then compile for themselves, as they always could.
 """
 
 from __future__ import annotations
@@ -27,9 +26,11 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from typing import Any
 
-from comexp.experiment.task import EpisodeSpec
+from comexp.backends.physics_settings import BUILTIN_PHYSICS
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeSpec
+from comexp.sim.simulator import SimulatorSpec
 
 log = logging.getLogger("comexp.pool")
 
@@ -39,29 +40,27 @@ _warmed: set[str] = set()
 
 
 def warm_kernel_cache(
-    backend: str,
+    simulator: SimulatorSpec,
     spec: EpisodeSpec,
-    backend_options: dict[str, Any] | None = None,
     *,
     timeout_s: float = WARM_UP_TIMEOUT_S,
     meanwhile: Callable[[], None] | None = None,
 ) -> bool:
-    """Run `spec` on `backend` in a child process (this process's environment, which local
+    """Run `spec` on `simulator` in a child process (this process's environment, which local
     workers inherit) so that every kernel a job of it needs is in Numba's cache before the
     workers start; once per backend and options per process. `meanwhile` runs while the
     child works (always, also when there is no child; its error ends the child). Returns
     whether the child ran the episode (False when skipped or failed: the workers compile
     what they miss)."""
-    from .actor import RUNNER_ENV, SIMULATOR_FACTORY_ENV
-
-    key = repr((backend, sorted((backend_options or {}).items())))
-    seams = os.environ.get(RUNNER_ENV) or os.environ.get(SIMULATOR_FACTORY_ENV)
-    if key in _warmed or seams or _numba_disabled():
+    backend = simulator.name
+    key = repr((simulator.target, sorted(simulator.options.items())))
+    built_in = simulator.target.rpartition(".")[0] in BUILTIN_PHYSICS
+    if key in _warmed or not built_in or _numba_disabled():
         if meanwhile is not None:
             meanwhile()
         return False
     _warmed.add(key)  # a failure is not retried: the workers compile for themselves
-    payload = pickle.dumps((backend, dict(backend_options or {}), spec))
+    payload = pickle.dumps((simulator, spec))
     log.info("%s: loading the compiled kernels (compiling them if the cache is cold)", backend)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="comexp-warm-up-") as tmp:
@@ -121,12 +120,9 @@ def _numba_disabled() -> bool:
     return os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0")
 
 
-def _run_one_episode(backend: str, options: dict[str, Any], spec: EpisodeSpec) -> str:
+def _run_one_episode(simulator: SimulatorSpec, spec: EpisodeSpec) -> str:
     """The workers' own episode: the same simulator and runner, so the same kernels compile."""
-    from comexp.experiment.episode import run_episode
-    from comexp.experiment.registry import make_simulator
-
-    sim = make_simulator(backend, **options)
+    sim = simulator.make()
     try:
         return run_episode(spec, sim).status
     finally:
@@ -135,8 +131,8 @@ def _run_one_episode(backend: str, options: dict[str, Any], spec: EpisodeSpec) -
 
 def main() -> int:
     with open(sys.argv[1], "rb") as f:
-        backend, options, spec = pickle.load(f)  # noqa: S301 - our parent's
-    _run_one_episode(backend, options, spec)
+        simulator, spec = pickle.load(f)  # noqa: S301 - our parent's
+    _run_one_episode(simulator, spec)
     return 0
 
 

@@ -13,7 +13,6 @@ import atexit
 import collections
 import contextlib
 import logging
-import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -22,33 +21,18 @@ from typing import Any
 import ray
 import ray.exceptions as rex
 
-from comexp.experiment.task import EpisodeResult, EpisodeSpec
+from comexp.episode.loop import run_episode
+from comexp.episode.task import EpisodeResult, EpisodeSpec
+from comexp.sim.simulator import SimulatorSpec
 
-from .actor import (
-    DEFAULT_RUNNER,
-    DEFAULT_SIMULATOR_FACTORY,
-    RUNNER_ENV,
-    SIMULATOR_FACTORY_ENV,
-    RemoteEpisodeWorker,
-    failed_result,
-)
+from .actor import RemoteEpisodeWorker, Runner, failed_result
+from .session import joined_cluster, one_line
+from .settings import AUTO, DEFAULT_LOCAL_WORKERS, PoolSettings, check_workers
 
 log = logging.getLogger("comexp.pool")
 
 # how long `EpisodePool.close` waits for its workers to close their simulators (s)
 CLOSE_WAIT_S = 5.0
-
-# `workers` (AUTO, DEFAULT_LOCAL_WORKERS, check_workers) is checked where the config is
-from comexp.experiment.config import AUTO, DEFAULT_LOCAL_WORKERS, check_workers  # noqa: E402
-
-
-def local_ray_cpus(workers: Any) -> int | None:
-    """`num_cpus` for a local Ray started for `workers`: the count (2 by default), or None
-    for `auto` (Ray then takes every CPU of this machine)."""
-    w = check_workers(workers)
-    if w is None:
-        return DEFAULT_LOCAL_WORKERS
-    return None if w == AUTO else int(w)
 
 
 def resolve_workers(workers: Any, cluster_cpus: int, *, on_cluster: bool) -> int:
@@ -122,46 +106,32 @@ class EpisodePool:
 
     def __init__(
         self,
-        backend: str,
-        workers: int | str | None = 2,
+        simulator: SimulatorSpec,
+        workers: int | str | None = None,
+        settings: PoolSettings | None = None,
         *,
-        runner: str | None = None,
-        simulator_factory: str | None = None,
-        runner_kwargs: dict[str, Any] | None = None,
-        batch_size: int = 8,
-        max_retries: int = 2,
+        runner: Runner = run_episode,
         inflight_per_worker: int = 2,
         start_timeout_s: float = 600.0,
-        replace_timeout_s: float = 60.0,
-        episode_timeout_s: float | None = None,
         kill_grace_s: float | None = None,
-        backend_options: dict[str, Any] | None = None,
     ) -> None:
-        if batch_size < 1 or max_retries < 0 or inflight_per_worker < 1:
-            raise ValueError("workers, batch_size, inflight_per_worker >= 1; max_retries >= 0")
-        self.backend = backend
+        settings = settings or PoolSettings()
+        if settings.batch_size < 1 or settings.max_retries < 0 or inflight_per_worker < 1:
+            raise ValueError("batch_size, inflight_per_worker >= 1; max_retries >= 0")
+        self.simulator = simulator
+        self.backend = simulator.name
         # as asked (a count, `auto` or None: see `resolve_workers`); `workers` is the count,
         # known once Ray is up (`start`)
         self.requested_workers = check_workers(workers)
         self.workers = self.requested_workers if isinstance(self.requested_workers, int) else 0
-        self.batch_size = batch_size
-        self.max_retries = max_retries
+        self.settings = settings
+        self.batch_size = settings.batch_size
+        self.max_retries = settings.max_retries
         self.inflight_per_worker = inflight_per_worker
         self.start_timeout_s = start_timeout_s
-        self.replace_timeout_s = replace_timeout_s
-        # None: the process' own (`RUNNER_ENV`, `SIMULATOR_FACTORY_ENV`), else the real ones
-        runner = runner or os.environ.get(RUNNER_ENV) or DEFAULT_RUNNER
-        factory = simulator_factory or os.environ.get(SIMULATOR_FACTORY_ENV)
-        # episode_timeout_s: per-episode limit enforced in the worker (see workers.actor)
-        self._actor_args = (
-            backend,
-            runner,
-            factory or DEFAULT_SIMULATOR_FACTORY,
-            runner_kwargs,
-            episode_timeout_s,
-            kill_grace_s,
-            backend_options,
-        )
+        self.replace_timeout_s = settings.restart_timeout_s
+        # the per-episode limit is enforced in the worker (workers/actor.py)
+        self._actor_args = (simulator, runner, settings.episode_timeout_s, kill_grace_s)
         self._slots: list[_Slot] = []
         self.stats = PoolStats()
 
@@ -174,11 +144,9 @@ class EpisodePool:
         before any episode runs)."""
         if self._slots:
             return
-        from .session import joined_cluster
-
         cpus = int(ray.cluster_resources().get("CPU", 0))
         self.workers = resolve_workers(self.requested_workers, cpus, on_cluster=joined_cluster())
-        if self.requested_workers != self.workers:
+        if self.requested_workers == AUTO:
             log.info("workers=%s: %d workers (the Ray cluster's CPUs)", self.requested_workers,
                      self.workers)  # fmt: skip
         if 0 < cpus < self.workers:  # each actor holds one CPU: more would wait forever
@@ -404,21 +372,28 @@ class EpisodePool:
 _kept: tuple[str, EpisodePool] | None = None
 
 
-def job_pool(backend: str, workers: int | str | None = 2, **options: Any) -> EpisodePool:
+def job_pool(
+    simulator: SimulatorSpec,
+    workers: int | str | None,
+    settings: PoolSettings,
+    *,
+    runner: Runner = run_episode,
+) -> EpisodePool:
     """The pool of a `comexp` job: the last job's, its workers still running, when it was
     made with the same arguments (the jobs of a multirun on one backend and physics: starting
     two workers costs each job ~0.8 s), else a new one (the last one closed). The caller
     closes it (`close_job_pool`) when a job fails or the process is done; at exit at the
     latest (before Ray's own shutdown, which was registered first)."""
     global _kept
-    key = repr((backend, workers, sorted(options.items())))
+    options = sorted(simulator.options.items())
+    key = repr((simulator.name, simulator.target, options, workers, settings, runner))
     if _kept is not None and _kept[0] == key:
         return _kept[1]
     close_job_pool()
     if not _exit_hook:
         atexit.register(close_job_pool)
         _exit_hook.append(True)
-    pool = EpisodePool(backend, workers, **options)
+    pool = EpisodePool(simulator, workers, settings, runner=runner)
     _kept = (key, pool)
     return pool
 
@@ -437,10 +412,3 @@ def close_job_pool() -> None:
 def _kill(actor: Any) -> None:
     with contextlib.suppress(Exception):  # already gone
         ray.kill(actor, no_restart=True)
-
-
-def one_line(e: BaseException) -> str:
-    text = str(e).strip().splitlines()
-    # Ray's messages start with boilerplate; the last non-empty line names the cause.
-    lines = [t.strip() for t in text if t.strip()]
-    return f"{type(e).__name__}: {lines[-1] if lines else ''}"[:300]

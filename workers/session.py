@@ -1,7 +1,7 @@
 """The Ray session of this process: start a quiet local Ray or join a cluster (as a zero-CPU node
 of our own, `JoinNode`), once per process, with token auth that lives in memory only; the
-environment worker processes get; and the check, before anything is written, that a cluster
-address answers.
+environment worker processes get; how many workers a job asks for (`workers`, `RaySettings`);
+and the check, before anything is written, that a cluster address answers.
 """
 
 from __future__ import annotations
@@ -26,9 +26,30 @@ from typing import Any
 
 import ray
 
-from .pool import PoolError, local_ray_cpus, one_line
+from .settings import AUTO, DEFAULT_LOCAL_WORKERS, check_workers
 
 log = logging.getLogger("comexp.pool")
+
+
+class SessionError(RuntimeError):
+    """Ray cannot be started here, or the cluster cannot be joined (one line)."""
+
+
+def local_ray_cpus(workers: Any) -> int | None:
+    """`num_cpus` for a local Ray started for `workers`: the count (2 by default), or None
+    for `auto` (Ray then takes every CPU of this machine)."""
+    w = check_workers(workers)
+    if w is None:
+        return DEFAULT_LOCAL_WORKERS
+    return None if w == AUTO else int(w)
+
+
+def one_line(e: BaseException) -> str:
+    """A Ray error in one line: its type and the last non-empty line of its message (Ray's
+    messages start with boilerplate; the last line names the cause)."""
+    text = str(e).strip().splitlines()
+    lines = [t.strip() for t in text if t.strip()]
+    return f"{type(e).__name__}: {lines[-1] if lines else ''}"[:300]
 
 
 RAY_CONNECT_TIMEOUT_S = 5.0
@@ -102,35 +123,6 @@ def joined_cluster() -> bool:
     return _joined_cluster
 
 
-@contextlib.contextmanager
-def _lean_local_head(*, active: bool, log_monitor: bool):
-    """Start a local head without the processes a one-machine job never uses.
-
-    The autoscaler monitor (monitor.py) has nothing to scale on one machine, and the log
-    monitor (log_monitor.py) only forwards worker output to the driver, which a job with
-    `log_to_driver` False discards: ~50 MB of memory each (`bench/memory.py`). `ray.init`
-    exposes neither switch, so its RayParams is built with them set; a Ray without that
-    private name starts them as before.
-    """
-    parameter = getattr(getattr(ray, "_private", None), "parameter", None)
-    params_cls = getattr(parameter, "RayParams", None)
-    if not active or params_cls is None:
-        yield
-        return
-
-    def lean_params(*args: Any, **kwargs: Any) -> Any:
-        kwargs["no_monitor"] = True
-        if not log_monitor:
-            kwargs["include_log_monitor"] = False
-        return params_cls(*args, **kwargs)
-
-    parameter.RayParams = lean_params
-    try:
-        yield
-    finally:
-        parameter.RayParams = params_cls
-
-
 def ensure_ray(
     address: str | None = None,
     num_cpus: int | str | None = 2,
@@ -144,7 +136,7 @@ def ensure_ray(
     Ray 2.60 attaches a driver to a Ray node on the driver's machine, and a laptop or the
     compose `sweep` container runs none. `auto` means "this machine is a cluster node".
     Later calls reuse the session, so the jobs of a multirun share it; the session (and the
-    join node) is shut down at exit when this process started it. Raises `PoolError` (one
+    join node) is shut down at exit when this process started it. Raises `SessionError` (one
     line naming the address) when the cluster cannot be joined.
 
     `num_cpus` is the job's `workers` for a local Ray: a count, `auto` (every CPU of this
@@ -181,14 +173,16 @@ def ensure_ray(
         atexit.register(shutdown_ray)
     _ray_started_here = True
     try:
-        with _lean_local_head(active=address is None, log_monitor=log_to_driver):
-            ray.init(**kwargs)
+        # A local head also starts Ray's autoscaler monitor and log monitor, which a one-machine
+        # job never uses (~85 MB); `ray.init` has no public switch for either (Ray issue
+        # ray-project/ray#46732, "Ray cluster with necessary process only").
+        ray.init(**kwargs)
     except (ConnectionError, RuntimeError) as e:
         shutdown_ray()
         where = {None: "a new local Ray", "auto": "a local Ray node (ray.address=auto)"}.get(
             address, address
         )
-        raise PoolError(f"cannot connect to {where}: {one_line(e)}") from None
+        raise SessionError(f"cannot connect to {where}: {one_line(e)}") from None
     if _join_node is not None:
         log.info(
             "joined the Ray cluster at %s as a zero-CPU node (temp dir %s)",
@@ -199,17 +193,12 @@ def ensure_ray(
 
 def _in_memory_auth_token() -> None:
     """Token auth for a local Ray with a token that lives only in the environment (inherited
-    by Ray's processes). Left to itself, Ray 2.5x writes one to ~/.ray/auth_token and warns.
+    by Ray's processes): Ray turns token auth on for a new local Ray by itself and, without a
+    token in `RAY_AUTH_TOKEN` (its documented first source), writes one to ~/.ray/auth_token.
     A user's own RAY_AUTH_* settings win."""
     if any(os.environ.get(k) for k in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")):
         return
-    try:
-        from ray._raylet import Config
-    except ImportError:  # another Ray version: keep its default behaviour
-        return
-    os.environ["RAY_AUTH_MODE"] = "token"
     os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
-    Config.initialize("")  # Ray caches its config at import; re-read the environment
 
 
 def shutdown_ray() -> None:
@@ -301,7 +290,7 @@ class JoinNode:
                 if not failed and lines:
                     why += f": {lines[-1]}"
                 why = re.sub(r"^\[[^]]*\]\s*(\S+:\d+:\s*)?", "", why)  # Ray's log prefix
-                raise PoolError(f"cannot join the Ray cluster at {address}: {why[:300]}")
+                raise SessionError(f"cannot join the Ray cluster at {address}: {why[:300]}")
             time.sleep(0.2)
 
     def stop(self, grace_s: float = 20.0) -> None:

@@ -22,6 +22,7 @@ from typing import Any, NoReturn
 
 from sqlalchemy.exc import SQLAlchemyError
 
+from comexp.results.claims import CLAIM_COLUMNS, claims_markdown, claims_records
 from comexp.results.filters import EpisodeFilter
 from comexp.results.reports import (
     CORE_COLUMNS,
@@ -319,8 +320,6 @@ def _run(args: argparse.Namespace, out: Any) -> None:
             else:
                 out.write(paper_markdown(ptables))
         elif args.command == "claims":
-            from comexp.results.claims import CLAIM_COLUMNS, claims_markdown, claims_records
-
             rows = db.episodes(flt, columns=CLAIM_COLUMNS)
             if args.format == "json":
                 out.write(_json_out(claims_records(rows, seed=args.seed)))
@@ -331,6 +330,7 @@ def _run(args: argparse.Namespace, out: Any) -> None:
             rows = db.episodes(flt, columns=cols, limit=args.limit)
             out.write(_rows_out(rows, cols, args.format))
         elif args.command == "plot":
+            # on first use: matplotlib adds ~0.3 s to the start-up of every comexp-db command
             from comexp.results.plots import make_plots
 
             for path in make_plots(db, args.out, flt):
@@ -352,6 +352,7 @@ def _check_image_path(path: str) -> None:
 
 
 def _show(db: ResultsDB, args: argparse.Namespace, out: Any) -> None:
+    # on first use: matplotlib adds ~0.3 s to the start-up of every comexp-db command
     from comexp.results.plots import plot_episode
 
     row = db.episode(args.episode_id)

@@ -1,5 +1,2 @@
-"""The experiment: a job's config and its checks (`config`), the objects, the grid of episodes,
-an episode's task (`task`) and the loop that runs it (`episode.run_episode`), the simulator
-interface with its push protocol that the backends implement (`interface`), the backends by
-name (`registry`), and the camera-view and contact geometry they share (`view`, `contact`);
-`simulator` re-exports those four."""
+"""The driver side: a job's config and its checks (`config`), where config groups' files are
+found (`sources`), the objects, the grid of episodes, and the job service (`job.run_job`)."""

@@ -1,42 +1,58 @@
-"""Structured configuration of one experiment job, its validation, and object lookup.
+"""Structured configuration of one experiment job, its validation, and what it names by name
+(objects, backends).
 
-The dataclasses below are the one place every default is written (push length, re-centring
-distance, mass, camera rate, grid, workers, ...): conf/config.yaml holds only the group choices
-and Hydra's own settings, and other modules derive their defaults from these classes
-(tests/test_config.py checks README.md and docs/ against them).
+The job's schema (`ExperimentConfig`, registered in Hydra's ConfigStore as the schema of
+`conf/config.yaml`) is composed of the settings each part of comexp owns, with their defaults
+written once, there: the push protocol's (`episode`, `camera`: `comexp.episode.task`), the
+estimator's (`estimator`: generated from `comexp.method.estimator.EstimatorSettings`, a knob per
+field), the pool's and Ray's (`execution`, `ray`, `workers`: `comexp.workers.settings`);
+conf/config.yaml holds only the group choices and Hydra's own settings. A wrong *type*
+(``speed=abc``) is rejected by Hydra while composing; wrong *values* (negative speed, unknown
+object, ...) by `prepare_job`, which the CLI runs before Hydra creates any output folder
+(`comexp.cli.run`): bad input costs nothing and leaves nothing behind. Validation is pure: it
+probes neither the database nor Ray (the job does, once: `comexp.experiment.job.probe_resources`).
 
-The dataclasses below are registered in Hydra's ConfigStore as the schema of `conf/config.yaml`,
-so a wrong *type* (``speed=abc``) is rejected by Hydra while composing. Wrong *values*
-(negative speed, unknown object, ...) are caught by `prepare_job`, which the CLI runs before
-Hydra creates any output folder (see `comexp.cli.run`): bad input must cost nothing and leave
-nothing behind. Validation is pure: it imports neither the results store nor the workers, and
-probes neither the database nor Ray (the command does, once: `comexp.cli.run.probe_resources`).
+A backend is its config group option (`conf/backend/NAME.yaml`): its `name` and its simulator
+class (`_target_`, `module.Class`); a researcher's own backend is one such file in their config
+directory plus their module (docs/physics.md, "Your own backend").
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import yaml
 from hydra.core.config_store import ConfigStore
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import MissingConfigException
 from omegaconf import MISSING, DictConfig, OmegaConf, open_dict
 
-from comexp.experiment.objects import ObjectDef, load_objects
-from comexp.experiment.registry import (
-    ENGINES,
+from comexp.backends.physics_settings import (
     FLOOR_FRICTION_CHOICES,
     RENDERER_CHOICES,
-    backend_names,
-    resolve_backend,
+    backend_physics,
 )
+from comexp.episode.task import CameraSettings, EpisodeSettings
+from comexp.experiment.objects import ObjectDef, load_objects
+from comexp.experiment.sources import PACKAGE_SOURCES, group_files, read_mapping, yaml_error_line
 from comexp.method.estimator import EstimatorSettings
+from comexp.method.estimators import resolve_estimator
+from comexp.sim.scene import SimSettings
+from comexp.sim.simulator import Simulator, SimulatorSpec
+from comexp.workers.settings import PoolSettings, RaySettings, check_workers
 
 FLOOR_KINDS = ("iso", "aniso")
 ANISO_ORIENTATIONS = ("xy", "yx")
 SCHEMA_NAME = "comexp_schema"
+BACKEND_GROUP = "backend"
+# A commodity depth camera (RealSense D4xx, Azure Kinect, ...) streams depth at up to 30 fps.
+MAX_CAMERA_FPS = 30.0
 
 
 class ConfigError(ValueError):
@@ -48,14 +64,20 @@ class ConfigError(ValueError):
 
 @dataclass
 class BackendConfig:
-    name: str = MISSING  # the `backend` group's option (default: conf/config.yaml's defaults list)
-    # engines only: "model" = the shared footprint friction model applied as a force each step
+    """The `backend` group's option (conf/backend/NAME.yaml; default: conf/config.yaml's
+    defaults list)."""
+
+    name: str = MISSING  # the backend's name in the database and the reports
+    _target_: str = MISSING  # its simulator class, module.Class (a `Simulator` subclass)
+    # a 3-D engine: it takes `floor_friction` and draws its images with `camera.renderer`
+    engine: bool = False
+    # engines: "model" = the shared footprint friction model applied as a force each step
     # (the engine's own object-floor friction off); "native" = the engine's own friction
     floor_friction: str = "model"
-
-    def options(self) -> dict[str, str]:
-        """The simulator's constructor options (`comexp.experiment.registry.make_simulator`)."""
-        return {"floor_friction": self.floor_friction} if self.name in ENGINES else {}
+    # what only Linux has, when the backend needs it (refused elsewhere in one line)
+    linux_only: str | None = None
+    # the simulator class's own keyword arguments (a plug-in's: part of its physics identity)
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -86,126 +108,35 @@ class GridConfig:
     com_margin_cm: float = 1.0  # sampled CoMs keep this distance from the outline
 
 
-@dataclass
-class EpisodeConfig:
-    """The push protocol of every episode (see docs/method.md, "Episode runner")."""
-
-    push_length_cm: float = 3.0  # how far the pusher goes past the contact point (paper: 3 cm)
-    recenter_beyond_cm: float = 10.0  # put the object back at the centre beyond this; 0: never
-    mass_kg: float = 0.2  # the object's mass (paper: 0.2 kg)
-
-
-# A commodity depth camera (RealSense D4xx, Azure Kinect, ...) streams depth at up to 30 fps.
-MAX_CAMERA_FPS = 30.0
-
-
-@dataclass
-class CameraConfig:
-    """The depth camera. `fps`: tracking frames per second while the object moves during a
-    push, so that the rotation is followed frame to frame (unwrapped); 0 = the images before
-    and after each push only. The default is the lowest measured rate that unwraps every
-    rotation of the study (docs/method.md, "Tracking during the push")."""
-
-    fps: float = 30.0
-    # how the engines make depth images: raycast (the exact ray cast of the prism at the
-    # engine's pose, planar's camera) | engine (the engine's own renderer); docs/method.md
-    renderer: str = "raycast"
-
-
-@dataclass
-class RayConfig:
-    address: str | None = None  # None: start a local Ray; "auto" or host:port: join a cluster
-    log_to_driver: bool = False  # worker stdout/stderr on the terminal (engines are chatty)
-
-
-@dataclass
-class ExecutionConfig:
-    """How episodes are run."""
-
-    batch_size: int = 8  # episodes per Ray task: ~0.5 ms overhead vs ~100 ms per episode
-    max_retries: int = 2  # a batch whose worker dies is retried this often, then split
-    restart_timeout_s: float = 60.0  # a replacement worker not up by then is dropped
-    # An episode still running after this is failed with `failure="timeout"` and its worker
-    # carries on (episodes take ~0.1-0.3 s; quasi-static ones a few s): catches hangs only.
-    episode_timeout_s: float = 120.0
-
-
-_EST = EstimatorSettings()  # the defaults are the settings' own: written once, there
-
-
-@dataclass
-class EstimatorConfig:
-    """The `estimator` node: the knobs of `comexp.method.estimator.EstimatorSettings`, named
-    on the command line as the paper names them (units dropped: deg, px). `SETTINGS_FIELDS`
-    maps each onto its settings field (and database column); tests/test_config.py checks that
-    every settings field has its knob here."""
-
-    w: list[float] = field(default_factory=lambda: list(_EST.w))
-    theta_T: float = _EST.theta_T_deg  # deg
-    C_bw: float = _EST.C_bw_px  # px
-    n_push: int = _EST.n_push
-    rotation_source: str = _EST.rotation_source  # vision | oracle
-    track_step: float = _EST.track_step_deg  # deg
-    track_gap: float = _EST.track_gap_s  # s
-    track_drive: float = _EST.track_drive_mm  # mm
-    d_metric: str = _EST.d_metric
-    d_signed: bool = _EST.d_signed
-    cos_signed: bool = _EST.cos_signed
-    band_signed: bool = _EST.band_signed
-    contact_spacing: float = _EST.contact_spacing_px  # px
-    check_reachability: bool = _EST.check_reachability
-    method: str = _EST.method  # paper | magnitude | my_pkg.module:MyEstimator (a plug-in)
-    mag_noise: float = _EST.mag_noise_deg  # deg
-    mag_rel_noise: float = _EST.mag_rel_noise
-    mag_floor_model: bool = _EST.mag_floor_model
-    # motion: the model's revision in the episode key; "" = the grid pins the current one
-    motion_version: str = _EST.motion_version
-
-
-# config knob (`estimator.<knob>`) -> EstimatorSettings field: the one place the two names meet
-SETTINGS_FIELDS: dict[str, str] = {
-    "w": "w",
-    "theta_T": "theta_T_deg",
-    "C_bw": "C_bw_px",
-    "n_push": "n_push",
-    "rotation_source": "rotation_source",
-    "track_step": "track_step_deg",
-    "track_gap": "track_gap_s",
-    "track_drive": "track_drive_mm",
-    "d_metric": "d_metric",
-    "d_signed": "d_signed",
-    "cos_signed": "cos_signed",
-    "band_signed": "band_signed",
-    "contact_spacing": "contact_spacing_px",
-    "check_reachability": "check_reachability",
-    "method": "method",
-    "mag_noise": "mag_noise_deg",
-    "mag_rel_noise": "mag_rel_noise",
-    "mag_floor_model": "mag_floor_model",
-    "motion_version": "motion_version",
+# the `estimator` node's types for the settings' (OmegaConf has lists, not tuples)
+_NODE_TYPES = {
+    "tuple[float, float]": list[float],
+    "float": float,
+    "int": int,
+    "str": str,
+    "bool": bool,
 }
-_CONFIG_NAMES = {name: knob for knob, name in SETTINGS_FIELDS.items()}
 
 
-AUTO = "auto"
-DEFAULT_LOCAL_WORKERS = 2
+def _knob(f: dataclasses.Field) -> str:
+    """The config name of an `EstimatorSettings` field."""
+    return f.metadata.get("knob", f.name)
 
 
-def check_workers(workers: Any) -> int | str | None:
-    """`workers` as configured, checked: a count >= 1, `AUTO` or None; ValueError (one line)
-    otherwise. A count given as text ("4", from a command line) becomes an int."""
-    if workers is None:
-        return None
-    if isinstance(workers, str):
-        text = workers.strip().lower()
-        if text == AUTO:
-            return AUTO
-        if not text.isdigit():
-            raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
-        workers = int(text)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a count >= 1 or auto, got {workers!r}")
-    return workers
+def _estimator_node() -> type:
+    """The `estimator` node: a knob per `EstimatorSettings` field, its default the field's."""
+    fields = []
+    for f in dataclasses.fields(EstimatorSettings):
+        default = f.default
+        if isinstance(default, tuple):
+            spec = field(default_factory=lambda d=default: list(d))
+        else:
+            spec = field(default=default)
+        fields.append((_knob(f), _NODE_TYPES[str(f.type)], spec))
+    return dataclasses.make_dataclass("EstimatorConfig", fields)
+
+
+EstimatorConfig = _estimator_node()
 
 
 @dataclass
@@ -217,25 +148,16 @@ class ExperimentConfig:
     speed: float = 40.0  # cm/s
     pusher: PusherConfig = field(default_factory=PusherConfig)
     grid: GridConfig = field(default_factory=GridConfig)
-    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
-    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    camera: CameraConfig = field(default_factory=CameraConfig)
+    episode: EpisodeSettings = field(default_factory=EpisodeSettings)
+    estimator: Any = field(default_factory=EstimatorConfig)
+    camera: CameraSettings = field(default_factory=CameraSettings)
     # a count, `auto` (every CPU of the Ray cluster, or of this machine for a local Ray), or
     # null: 2 on a local Ray, `auto` when the job joins a cluster (`ray.address` set)
     workers: Any = None
-    ray: RayConfig = field(default_factory=RayConfig)
-    execution: ExecutionConfig = field(default_factory=ExecutionConfig)
+    ray: RaySettings = field(default_factory=RaySettings)
+    execution: PoolSettings = field(default_factory=PoolSettings)
     db: str = "results/comexp.db"  # SQLAlchemy URL or file path (relative to the current dir)
     seed: int = 0
-
-
-def simulator_options(cfg: Any) -> dict[str, str]:
-    """The simulator's constructor options for a job (`make_simulator`, the workers' pool and
-    the episodes' physics identity): the backend's own, and the engines' renderer."""
-    opts = dict(cfg.backend.options())
-    if cfg.backend.name in ENGINES:
-        opts["renderer"] = cfg.camera.renderer
-    return opts
 
 
 def register_configs() -> None:
@@ -247,19 +169,71 @@ def register_configs() -> None:
 register_configs()
 
 
+# --- backends by name ----------------------------------------------------------------------
+
+
+def simulator_spec(backend: BackendConfig, camera: CameraSettings) -> SimulatorSpec:
+    """The simulator a job's workers build: the backend's class and its options (its own, and
+    an engine's floor friction and renderer)."""
+    options = dict(backend.options)
+    if backend.engine:
+        options.update(floor_friction=backend.floor_friction, renderer=camera.renderer)
+    return SimulatorSpec(backend.name, backend._target_, options)
+
+
+def load_backend(
+    name: str, sources: Sequence[Mapping[str, Any]] = PACKAGE_SOURCES
+) -> BackendConfig:
+    """The backend config group's option `name` (`backend/NAME.yaml` of the sources: the
+    package's own by default), as the job's `backend` node; ValueError (one line) for an
+    unknown name."""
+    files = group_files(BACKEND_GROUP, sources)
+    if name not in files:
+        raise ValueError(f"unknown backend {name!r} (choose one of: {', '.join(sorted(files))})")
+    data = read_mapping(f"backend {name!r}", files[name])
+    node = OmegaConf.merge(OmegaConf.structured(BackendConfig), data)
+    return OmegaConf.to_object(node)  # type: ignore[return-value]
+
+
+def make_simulator(name: str, settings: SimSettings | None = None, **options: Any) -> Simulator:
+    """A simulator of the built-in backend `name` (tests, bench, replay); `options` are its own
+    (an engine's `floor_friction`, `renderer`)."""
+    backend = load_backend(name)
+    return SimulatorSpec(name, backend._target_, options).make(settings)
+
+
+def hydra_error_line(e: BaseException) -> str:
+    """One line out of Hydra's, OmegaConf's and PyYAML's multi-line messages."""
+    if isinstance(e, yaml.YAMLError):
+        return yaml_error_line(e)
+    if isinstance(e, MissingConfigException) and e.missing_cfg_file and e.options is not None:
+        group, _, name = e.missing_cfg_file.rpartition("/")
+        if group:
+            return f"unknown {group} {name!r} (choose one of: {', '.join(e.options)})"
+    cause = e.__cause__ or e.__context__
+    for err in (cause, e):
+        key = getattr(err, "full_key", None)
+        msg = getattr(err, "msg", None)
+        if key and msg:
+            return f"{key}: {str(msg).splitlines()[0]}"
+    text = [t.strip() for t in str(e).splitlines() if t.strip()]
+    if cause is not None and (not text or text[-1].endswith(":")):
+        text += [t.strip() for t in str(cause).splitlines() if t.strip()][:1]
+    return " ".join(text[:2]) if text else type(e).__name__
+
+
 # --- conversion and validation ------------------------------------------------------------
 
 
 def estimator_settings(est: Any) -> EstimatorSettings:
-    """Map the `estimator` node onto `EstimatorSettings` (lists back to tuples)."""
+    """The `estimator` node as `EstimatorSettings` (lists back to tuples)."""
     kwargs = {}
-    for cfg_name, name in SETTINGS_FIELDS.items():
-        value = getattr(est, cfg_name) if not isinstance(est, Mapping) else est[cfg_name]
+    for f in dataclasses.fields(EstimatorSettings):
+        knob = _knob(f)
+        value = est[knob] if isinstance(est, Mapping) else getattr(est, knob)
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value)
-        if isinstance(value, list):
-            value = tuple(value)
-        kwargs[name] = value
+        kwargs[f.name] = tuple(value) if isinstance(value, list) else value
     return EstimatorSettings(**kwargs)
 
 
@@ -332,23 +306,29 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
 
 
 def _validate_backend(backend: BackendConfig) -> None:
-    if backend.name not in backend_names():
-        if ":" not in backend.name:
-            raise ConfigError(
-                f"unknown backend {backend.name!r} (choose one of: {', '.join(backend_names())}"
-                ", or a plug-in module:Class)"
-            )
-        try:  # a plug-in: importable, a Simulator, with its physics identity
-            resolve_backend(backend.name)
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
+    try:
+        cls = simulator_spec(backend, CameraSettings()).simulator_class()
+        backend_physics(backend._target_)
+    except ValueError as e:
+        raise ConfigError(
+            f"backend={backend.name}: {str(e).removeprefix(f'backend {backend.name!r}: ')}"
+        ) from None
+    if not issubclass(cls, Simulator):  # (simulator_class checks it; stated for the reader)
+        raise ConfigError(f"backend={backend.name}: not a Simulator")
     if backend.floor_friction not in FLOOR_FRICTION_CHOICES:
         raise ConfigError(
             f"backend.floor_friction must be one of {', '.join(FLOOR_FRICTION_CHOICES)}, "
             f"got {backend.floor_friction!r}"
         )
-    if backend.name == "planar" and backend.floor_friction != "model":
-        raise ConfigError("backend=planar is the friction model itself: floor_friction=model only")
+    if not backend.engine and backend.floor_friction != "model":
+        raise ConfigError(
+            f"backend={backend.name} is the friction model itself: floor_friction=model only"
+        )
+    if backend.linux_only and not sys.platform.startswith("linux"):
+        raise ConfigError(
+            f"backend={backend.name} runs on Linux only ({backend.linux_only}); this is "
+            f"{sys.platform}: use backend=planar or backend=pybullet, or the docker image (docker/)"
+        )
 
 
 def _validate_floor(fl: FloorConfig) -> None:
@@ -371,7 +351,7 @@ def _validate_floor(fl: FloorConfig) -> None:
             raise ConfigError(f"floor.orientations has duplicates: {list(fl.orientations)}")
 
 
-def _validate_episode(ep: EpisodeConfig) -> None:
+def _validate_episode(ep: EpisodeSettings) -> None:
     if not _finite(ep.push_length_cm) or ep.push_length_cm <= 0:
         raise ConfigError(f"episode.push_length_cm must be > 0, got {ep.push_length_cm!r}")
     if not _finite(ep.mass_kg) or ep.mass_kg <= 0:
@@ -381,7 +361,7 @@ def _validate_episode(ep: EpisodeConfig) -> None:
         raise ConfigError(msg)
 
 
-def _validate_camera(camera: CameraConfig) -> None:
+def _validate_camera(camera: CameraSettings) -> None:
     fps = camera.fps
     if not _finite(fps) or not 0 <= fps <= MAX_CAMERA_FPS:
         raise ConfigError(
@@ -394,7 +374,7 @@ def _validate_camera(camera: CameraConfig) -> None:
         )
 
 
-def _validate_execution(ex: ExecutionConfig) -> None:
+def _validate_execution(ex: PoolSettings) -> None:
     if ex.batch_size < 1:
         raise ConfigError(f"execution.batch_size must be >= 1, got {ex.batch_size}")
     if not ex.restart_timeout_s > 0:
@@ -406,14 +386,18 @@ def _validate_execution(ex: ExecutionConfig) -> None:
 
 
 def _validate_estimator(est: Any) -> EstimatorSettings:
-    """The estimator node through `EstimatorSettings`' own checks (the one set of rules), its
+    """The estimator node through `EstimatorSettings`' own checks (the one set of rules) and
+    the estimator's class (`resolve_estimator`: a plug-in that cannot be used fails here), its
     message naming the config key (`theta_T_deg` -> `estimator.theta_T`)."""
+    knobs = {f.name: _knob(f) for f in dataclasses.fields(EstimatorSettings)}
     try:
-        return estimator_settings(est)
+        settings = estimator_settings(est)
+        resolve_estimator(settings.method)
+        return settings
     except (TypeError, ValueError) as e:
         msg = str(e).splitlines()[0]
         field_name, _, rest = msg.partition(" ")
-        key = _CONFIG_NAMES.get(field_name)
+        key = knobs.get(field_name)
         raise ConfigError(f"estimator.{key} {rest}" if key else f"estimator: {msg}") from None
 
 
@@ -425,31 +409,25 @@ class PreparedJob:
     cfg: ExperimentConfig
     estimator: EstimatorSettings
     objects: dict[str, ObjectDef]
+    simulator: SimulatorSpec
 
 
 def prepare_job(cfg: DictConfig) -> PreparedJob:
     """Typed config + validation + objects; raises `ConfigError`. Pure: it reads the job's
     config and its object files, and probes nothing outside (the database location and the Ray
-    address are the command's to probe, once: `comexp.cli.run.probe_resources`).
+    address are the job's to probe, once: `comexp.experiment.job.probe_resources`).
 
     Objects are looked up in the job's config sources: `cfg.hydra` in a callback's view of the
     config, `HydraConfig` inside the task function.
     """
     exp = to_experiment(cfg)
     est = validate(exp)
-    from comexp.experiment.platform import check_backend
-
-    try:
-        check_backend(exp.backend.name)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
     sources = OmegaConf.select(cfg, "hydra.runtime.config_sources")
     if sources is None:
-        from hydra.core.hydra_config import HydraConfig
-
         sources = HydraConfig.get().runtime.config_sources
     try:
         objects = load_objects(exp.grid.objects, OmegaConf.to_container(sources, resolve=False))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    return PreparedJob(cfg=exp, estimator=est, objects=objects)
+    simulator = simulator_spec(exp.backend, exp.camera)
+    return PreparedJob(cfg=exp, estimator=est, objects=objects, simulator=simulator)

@@ -13,9 +13,12 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any, Protocol
 
-from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_options
-from comexp.experiment.task import EpisodeSpec
+from comexp.backends.physics_settings import physics_identity
+from comexp.episode.task import EpisodeSpec
+from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_spec
+from comexp.experiment.objects import com_points
 from comexp.method.estimator import EstimatorSettings
+from comexp.method.motion_estimator import MOTION_VERSION
 
 
 class ObjectLike(Protocol):
@@ -47,22 +50,15 @@ def expand_grid(
     objects: Mapping[str, ObjectLike],
     *,
     estimator: EstimatorSettings | None = None,
-    com_fn: ComFn | None = None,
+    com_fn: ComFn = com_points,
 ) -> list[EpisodeSpec]:
     """All episodes of one job. `objects` maps names to object definitions (in grid order when
     `cfg.grid.objects` is None); `com_fn(obj, n, base_seed=, margin_cm=)` gives the CoMs."""
-    if com_fn is None:
-        from comexp.experiment.objects import com_points
-
-        com_fn = com_points
-    from comexp.experiment.registry import physics_identity
-
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
     if est.method == "motion" and not est.motion_version:
-        from comexp.method.motion_estimator import MOTION_VERSION
-
         est = replace(est, motion_version=MOTION_VERSION)
-    physics = physics_identity(cfg.backend.name, options=simulator_options(cfg))
+    sim = simulator_spec(cfg.backend, cfg.camera)
+    physics = physics_identity(sim.name, sim.target, options=dict(sim.options))
     names = list(cfg.grid.objects) if cfg.grid.objects is not None else sorted(objects)
     floors = floor_conditions(cfg.floor.name, cfg.floor.mu, cfg.floor.orientations)
     n_com = cfg.grid.coms_per_object

@@ -1,11 +1,11 @@
 """The objects of the study: one YAML file per object (a footprint polygon in cm plus a height),
 the one loader of those files, validation, the seeded CoM points and the one conversion to the
-simulator's `ObjectSpec` (`object_model`).
+simulator's `ObjectSpec` (`ObjectDef.model`).
 
 Loading: `load_objects(names, sources)` reads `object/<name>.yaml` from a job's config sources
-(Hydra's `hydra.runtime.config_sources`: the package's `conf/`, `--config-dir`,
-`hydra.searchpath` entries), the first source that has the file winning as in Hydra's search
-path; without `sources`, from the package's `conf/` alone (the built-in objects: tests, bench).
+(`comexp.experiment.sources`: the package's `conf/`, `--config-dir`, `hydra.searchpath`
+entries), the first source that has the file winning as in Hydra's search path; without
+`sources`, from the package's `conf/` alone (the built-in objects: tests, bench).
 
 Object frame: the footprint is re-centred on its area centroid (as `geometry.prism_object`
 does) and put in counter-clockwise order; x/y keep the axes of the config file. Every CoM the
@@ -19,24 +19,20 @@ the first 3 of 10. See docs/objects.md.
 from __future__ import annotations
 
 import hashlib
-import importlib.resources
 import math
-import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from importlib.resources.abc import Traversable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import shapely
-import yaml
-from omegaconf import OmegaConf
 from shapely.geometry import Point, Polygon
 
+from comexp.episode.task import EpisodeSettings, object_model
+from comexp.experiment.sources import PACKAGE_SOURCES, group_files, read_mapping
 from comexp.method import geometry
-from comexp.method.scene import ObjectSpec
+from comexp.sim.scene import ObjectSpec
 
 # Validation bounds (documented in docs/objects.md). The camera sees the floor at ~2.8 mm/px,
 # so an object thinner than MIN_WIDTH_CM covers only a dozen pixels across and its rotation is
@@ -124,9 +120,10 @@ class ObjectDef:
         *,
         izz_scale: float,
         mu_pusher: float,
-        mass_kg: float | None = None,
+        mass_kg: float = EpisodeSettings.mass_kg,
     ) -> ObjectSpec:
-        """The simulator's rigid body of this object with its CoM at `com_cm` (`object_model`)."""
+        """The simulator's rigid body of this object with its CoM at `com_cm`
+        (`comexp.episode.task.object_model`, the one conversion)."""
         return object_model(
             self.name,
             self.outline_cm,
@@ -238,108 +235,14 @@ def com_points(
     return [com_point(obj, k, base_seed, margin_cm) for k in range(n)]
 
 
-def object_model(
-    name: str,
-    outline_cm: Sequence[Sequence[float]],
-    height_cm: float,
-    com_cm: Sequence[float],
-    *,
-    izz_scale: float,
-    mu_pusher: float,
-    mass_kg: float | None = None,
-) -> ObjectSpec:
-    """The simulator's rigid-body model (SI units) of an object definition (cm) with its CoM at
-    `com_cm`: the one conversion, used by every episode (`episode.build_scene`). `mass_kg`
-    None: the config's default (`episode.mass_kg`)."""
-    if mass_kg is None:
-        from comexp.experiment.config import EpisodeConfig  # config imports this module
-
-        mass_kg = EpisodeConfig.mass_kg
-    return geometry.prism_object(
-        name,
-        [(x / 100.0, y / 100.0) for x, y in outline_cm],
-        height_cm / 100.0,
-        (com_cm[0] / 100.0, com_cm[1] / 100.0),
-        mass_kg=mass_kg,
-        izz_scale=izz_scale,
-        mu_pusher=mu_pusher,
-    )
-
-
 # --- the one loader: object/<name>.yaml from a job's config sources ---------------------------
 
 OBJECT_GROUP = "object"
-# The package's own config tree alone: the built-in objects (conf/object/*.yaml).
-PACKAGE_SOURCES: tuple[Mapping[str, str], ...] = (
-    {"provider": "main", "schema": "pkg", "path": "comexp.conf"},
-)
-
-
-def _source_root(source: Mapping[str, Any]) -> Traversable | None:
-    """The folder behind one Hydra config source; None for the ConfigStore (`structured://`,
-    which holds the schema only) and for a package that is not installed."""
-    schema, path = str(source["schema"]), str(source["path"])
-    if schema == "file":
-        return Path(os.path.realpath(path))  # as Hydra's file source names its files
-    if schema == "pkg":
-        module, _, sub = path.partition("/")
-        try:
-            root = importlib.resources.files(module)
-        except ModuleNotFoundError:
-            return None
-        return root.joinpath(sub) if sub else root
-    return None
-
-
-def _object_files(sources: Sequence[Mapping[str, Any]]) -> dict[str, Traversable]:
-    """name -> file for every object the sources hold; the first source with a name wins."""
-    out: dict[str, Traversable] = {}
-    for source in sources:
-        root = _source_root(source)
-        group = root.joinpath(OBJECT_GROUP) if root is not None else None
-        if group is None or not group.is_dir():
-            continue
-        for f in sorted(group.iterdir(), key=lambda f: f.name):
-            if f.is_file() and f.name.endswith(".yaml"):
-                out.setdefault(f.name.removesuffix(".yaml"), f)
-    return out
 
 
 def object_names(sources: Sequence[Mapping[str, Any]] = PACKAGE_SOURCES) -> list[str]:
     """Names of the objects the sources hold, sorted (the built-in ones by default)."""
-    return sorted(_object_files(sources))
-
-
-def yaml_error_line(e: yaml.YAMLError) -> str:
-    """`malformed YAML in FILE, line L, column C: problem (context at line, column)`: PyYAML's
-    multi-line message in one line, positions 1-based as editors count them."""
-    if not isinstance(e, yaml.MarkedYAMLError) or e.problem_mark is None:
-        text = [t.strip() for t in str(e).splitlines() if t.strip()]
-        return f"malformed YAML: {' '.join(text[:2]) or type(e).__name__}"
-    mark = e.problem_mark
-    out = f"malformed YAML in {mark.name}, line {mark.line + 1}, column {mark.column + 1}: "
-    out += e.problem or "syntax error"
-    ctx = e.context_mark
-    if e.context and ctx is not None:
-        where = f"line {ctx.line + 1}, column {ctx.column + 1}"
-        out += f" ({e.context} at {where})" if ctx.name == mark.name else f" ({e.context})"
-    return out
-
-
-def _read_mapping(name: str, file: Traversable) -> dict[str, Any]:
-    """The mapping in one object file, read as Hydra reads config files (OmegaConf's YAML,
-    interpolations resolved, a `defaults` list ignored)."""
-    try:
-        with file.open(encoding="utf-8") as f:
-            node = OmegaConf.load(f)
-    except yaml.YAMLError as e:
-        raise ValueError(f"object {name!r}: {yaml_error_line(e)}") from None
-    if OmegaConf.is_dict(node) and "defaults" in node:
-        node = OmegaConf.masked_copy(node, [k for k in node if k != "defaults"])
-    data = OmegaConf.to_container(node, resolve=True)
-    if not isinstance(data, dict):
-        raise ValueError(f"object {name!r}: config must be a mapping")
-    return data
+    return sorted(group_files(OBJECT_GROUP, sources))
 
 
 def load_objects(
@@ -347,7 +250,7 @@ def load_objects(
 ) -> dict[str, ObjectDef]:
     """`ObjectDef` per name, in the order asked (every object of the sources, sorted, when
     `names` is None). Raises ValueError, one line naming the object and the problem."""
-    files = _object_files(sources)
+    files = group_files(OBJECT_GROUP, sources)
     available = sorted(files)
     if names is None:
         if not available:
@@ -359,7 +262,7 @@ def load_objects(
         raise ValueError(f"unknown object {missing[0]!r} (available: {shown or 'none'})")
     out = {}
     for n in names:
-        data = _read_mapping(n, files[n])
+        data = read_mapping(f"object {n!r}", files[n])
         try:
             obj = ObjectDef.from_mapping(data, default_name=n)
         except (TypeError, ValueError, KeyError) as e:

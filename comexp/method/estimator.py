@@ -30,34 +30,28 @@ point whose lever arms (P_i - G) x N_i best explain the measured rotations with 
 gain, rot_i ~ k f((P_i - G) x N_i) (f linear, or saturating as the impact's l / (rho^2 + l^2)).
 Same API: `estimate_com(..., settings=EstimatorSettings(method="magnitude"))`.
 
-A researcher's own estimator plugs in from config without editing the package:
-`estimator.method=my_pkg.module:MyEstimator` (or `my_pkg.module.MyEstimator`) names a class
-that implements the `Estimator` protocol and takes `ComEstimator`'s constructor arguments;
-`make_estimator` builds the built-in one or the plug-in from the settings (see
-`resolve_estimator`). Its module must be importable where episodes run (installed, or on
-PYTHONPATH, which a local Ray's workers inherit).
+Every estimator by its method name, the plug-in protocol and the factory episodes use are
+`comexp.method.estimators`'.
 """
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import shapely
 from numba import njit
 
+from comexp.method.frames import Pose2D, wrap_angle
 from comexp.method.geometry import ccw, centroid, simplify
-from comexp.method.scene import Pose2D, wrap_angle
+from comexp.method.observation import hull_region
 
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
+# the built-in methods (`comexp.method.estimators.BUILT_IN` has their classes)
 METHODS = ("paper", "magnitude", "motion")
-# built-in methods with their own class, resolved as plug-ins are (the module imports this one)
-BUILT_IN_PLUGINS = {"motion": "comexp.method.motion_estimator:MotionEstimator"}
 # Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
 # squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
 # (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
@@ -73,11 +67,15 @@ SUBPIXEL = 3
 @dataclass(frozen=True)
 class EstimatorSettings:
     """Knobs of Algorithms 1 and 2 (paper defaults), plus the readings of the paper's
-    ambiguities (defaults = the physically right reading, see docs/method.md)."""
+    ambiguities (defaults = the physically right reading, see docs/method.md).
+
+    Each field is a knob of the `estimator` config node, named on the command line as the
+    paper names it where a field's metadata gives `knob` (units dropped: `estimator.theta_T`
+    is `theta_T_deg`); the field names are the stored episodes' (their identity)."""
 
     w: tuple[float, float] = (1.0, 0.5)
-    theta_T_deg: float = 1.0
-    C_bw_px: float = 10.0
+    theta_T_deg: float = field(default=1.0, metadata={"knob": "theta_T"})
+    C_bw_px: float = field(default=10.0, metadata={"knob": "C_bw"})
     n_push: int = 5
     rotation_source: str = "vision"  # vision | oracle
     # vision with frames: a frame is tracked when the predicted turn since the last one
@@ -85,20 +83,24 @@ class EstimatorSettings:
     # drives once it has travelled track_drive_mm since (every frame at 40 cm/s, every third
     # at 4 cm/s; `PoseTracker.wants_frame`); track_step_deg = 0: every camera frame;
     # track_drive_mm = 0: every frame while the pusher drives
-    track_step_deg: float = 10.0
-    track_gap_s: float = 0.1
-    track_drive_mm: float = 4.0
+    track_step_deg: float = field(default=10.0, metadata={"knob": "track_step"})
+    track_gap_s: float = field(default=0.1, metadata={"knob": "track_gap"})
+    track_drive_mm: float = field(default=4.0, metadata={"knob": "track_drive"})
     # --- readings of the paper's ambiguities -----------------------------------------------
     d_metric: str = "sine"  # score term d: sine of the angle (Alg. 1 line 5) | distance_px (Eq. 1)
     d_signed: bool = False  # score uses signed d (literal) instead of |d|
     cos_signed: bool = False  # score uses N.V1 (literal) instead of |N.V1|
     band_signed: bool = False  # band rule deletes d >= C_bw only (literal Alg. 2 l. 16) vs |d|
     # --- contact candidates ----------------------------------------------------------------
-    contact_spacing_px: float = 2.0  # arc length between sampled contour points
+    # arc length between sampled contour points
+    contact_spacing_px: float = field(default=2.0, metadata={"knob": "contact_spacing"})
     check_reachability: bool = True  # drop contacts the pusher cannot reach along -N
     # --- beyond the paper (docs/method.md, "Beyond the paper") -------------------------------
-    method: str = "paper"  # paper (Algorithms 1-2) | magnitude (also fits how much it turns)
-    mag_noise_deg: float = 1.0  # magnitude: rotation noise floor sigma0 (vision, unmodelled)
+    # paper (Algorithms 1-2) | magnitude (also fits how much it turns) | motion (reads the
+    # tracked path) | a plug-in module:Class (`comexp.method.estimators`)
+    method: str = "paper"
+    # magnitude: rotation noise floor sigma0 (vision, unmodelled)
+    mag_noise_deg: float = field(default=1.0, metadata={"knob": "mag_noise"})
     # magnitude: relative model error alpha of a turn, sigma^2 = sigma0^2 + (alpha rot)^2
     mag_rel_noise: float = 0.2
     # magnitude in episodes: the known floor and pusher friction turn each push's line of action
@@ -133,13 +135,11 @@ class EstimatorSettings:
             raise ValueError(f"n_push must be >= 1, got {self.n_push}")
         if self.contact_spacing_px <= 0:
             raise ValueError("contact_spacing_px must be > 0")
-        if self.method not in METHODS:
-            if not is_plugin(self.method):
-                raise ValueError(
-                    f"method must be one of {METHODS} or a plug-in 'module:Class', "
-                    f"got {self.method!r}"
-                )
-            resolve_estimator(self.method)  # a plug-in that cannot be used fails here, in one line
+        if self.method not in METHODS and not is_plugin(self.method):
+            # whether a plug-in can be used is `comexp.method.estimators.resolve_estimator`'s
+            raise ValueError(
+                f"method must be one of {METHODS} or a plug-in 'module:Class', got {self.method!r}"
+            )
         if not (math.isfinite(self.mag_noise_deg) and self.mag_noise_deg > 0):
             raise ValueError(f"mag_noise_deg must be > 0, got {self.mag_noise_deg!r}")
         if not (math.isfinite(self.mag_rel_noise) and self.mag_rel_noise >= 0):
@@ -633,7 +633,7 @@ class ComEstimator:
 OUTLINE_CENTRED_TOL_M = 1e-4
 
 
-def _as_pose(pose: Pose2D | Sequence[float]) -> Pose2D:
+def as_pose(pose: Pose2D | Sequence[float]) -> Pose2D:
     if isinstance(pose, Pose2D):
         return pose
     x_m, y_m, yaw_rad = (float(v) for v in pose)
@@ -646,7 +646,7 @@ def _rotate(v: Sequence[float] | np.ndarray, angle_rad: float) -> np.ndarray:
     return np.array([c * x - s * y, s * x + c * y])
 
 
-def _xy(v: Sequence[float] | np.ndarray) -> tuple[float, float]:
+def as_xy(v: Sequence[float] | np.ndarray) -> tuple[float, float]:
     a = np.asarray(v, dtype=float).reshape(-1)
     if a.shape != (2,) or not np.all(np.isfinite(a)):
         raise ValueError(f"expected a finite (x, y) pair, got {v!r}")
@@ -658,7 +658,6 @@ def region_from_outline(outline_m: np.ndarray, pixel_m: float) -> np.ndarray:
     spacing `pixel_m` (anchored at the frame's origin) inside the outline's convex hull, in the
     outline's frame, (n, 2) metres. Why the hull: the CoM of a non-convex object can lie
     outside its footprint (a U, a C); the paper starts from the hull's pixels."""
-    from comexp.method.observation import hull_region  # cv2 and shapely: only when needed
 
     outline = np.asarray(outline_m, dtype=float)
     hull = np.asarray(shapely.MultiPoint(outline).convex_hull.exterior.coords)[:-1]
@@ -728,18 +727,18 @@ class WorldPush:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise the inputs once, here
-        set_(self, "pose_before", _as_pose(self.pose_before))
-        set_(self, "contact_m", _xy(self.contact_m))
-        d = np.asarray(_xy(self.direction))
+        set_(self, "pose_before", as_pose(self.pose_before))
+        set_(self, "contact_m", as_xy(self.contact_m))
+        d = np.asarray(as_xy(self.direction))
         if np.linalg.norm(d) == 0:
             raise ValueError("direction must be a non-zero vector")
-        set_(self, "direction", _xy(d / np.linalg.norm(d)))
+        set_(self, "direction", as_xy(d / np.linalg.norm(d)))
         if self.line_direction is not None:
-            set_(self, "line_direction", _xy(self.line_direction))
+            set_(self, "line_direction", as_xy(self.line_direction))
         if (self.rotation_deg is None) == (self.pose_after is None):
             raise ValueError("a WorldPush needs exactly one of rotation_deg and pose_after")
         if self.pose_after is not None:
-            set_(self, "pose_after", _as_pose(self.pose_after))
+            set_(self, "pose_after", as_pose(self.pose_after))
         elif not math.isfinite(self.rotation_deg):
             raise ValueError(f"rotation_deg must be finite, got {self.rotation_deg!r}")
 
@@ -756,10 +755,10 @@ class WorldPush:
         before the push maps it there, whatever the object did in earlier pushes)."""
         yaw = self.pose_before.yaw_rad
         contact = self.pose_before.to_object(np.asarray(self.contact_m))
-        line = None if self.line_direction is None else _xy(_rotate(self.line_direction, -yaw))
+        line = None if self.line_direction is None else as_xy(_rotate(self.line_direction, -yaw))
         return ObservedPush(
-            contact_m=_xy(contact),
-            direction=_xy(_rotate(self.direction, -yaw)),
+            contact_m=as_xy(contact),
+            direction=as_xy(_rotate(self.direction, -yaw)),
             rotation_deg=self.turn_deg,
             line_direction=line,
         )
@@ -830,93 +829,6 @@ def estimate_com_world(
     )
 
 
-# --- plug-in estimators ----------------------------------------------------------------------
-
-
-@runtime_checkable
-class Estimator(Protocol):
-    """What an episode needs of an estimator (`ComEstimator` is the built-in one). A plug-in
-    class is constructed as `Cls(region_m, contacts_m, normals, pixel_m, settings, outline_m=...,
-    pusher_radius_m=...)` (`make_estimator`); the frames and units are `ComEstimator`'s."""
-
-    def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(contact, inward push direction) of the next push, or None to stop."""
-        ...
-
-    def observe(
-        self,
-        contact_m: np.ndarray,
-        direction: np.ndarray,
-        rotation_deg: float,
-        line_direction: np.ndarray | None = None,
-    ) -> str:
-        """Take the measured rotation of that push; returns a short decision label."""
-        ...
-
-    @property
-    def estimate_m(self) -> np.ndarray:
-        """The current CoM estimate (2,), metres."""
-        ...
-
-    @property
-    def region_px(self) -> int:
-        """The size of the current CoM region (points), recorded per push."""
-        ...
-
-
-_PROTOCOL = ("next_push", "observe", "estimate_m", "region_px")
-
-
 def is_plugin(method: str) -> bool:
     """`method` names a plug-in class (`module:Class` or `module.Class`), not a built-in."""
     return method not in METHODS and (":" in method or "." in method)
-
-
-def resolve_estimator(method: str) -> type:
-    """The estimator class `method` names: `ComEstimator` for `paper` and `magnitude`, the
-    class `BUILT_IN_PLUGINS` names for the other built-ins, else the plug-in `module:Class` /
-    `module.Class`, imported; ValueError (one line, starting with
-    `method`) when it cannot be imported or lacks the `Estimator` protocol."""
-    if method in METHODS and method not in BUILT_IN_PLUGINS:
-        return ComEstimator
-    method = BUILT_IN_PLUGINS.get(method, method)
-    module, sep, name = method.partition(":")
-    if not sep:
-        module, _, name = method.rpartition(".")
-    try:
-        cls: Any = importlib.import_module(module)
-        for part in name.split("."):
-            cls = getattr(cls, part)
-    except (ImportError, AttributeError, ValueError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ValueError(f"method {method!r}: cannot import the plug-in: {msg}") from None
-    missing = [m for m in _PROTOCOL if not hasattr(cls, m)]
-    if not isinstance(cls, type) or missing:
-        raise ValueError(
-            f"method {method!r}: not an estimator class (missing: {', '.join(missing) or '-'})"
-        )
-    return cls
-
-
-def make_estimator(
-    region_m: np.ndarray,
-    contacts_m: np.ndarray,
-    normals: np.ndarray,
-    pixel_m: float,
-    settings: EstimatorSettings | None = None,
-    outline_m: np.ndarray | None = None,
-    pusher_radius_m: float | None = None,
-) -> Estimator:
-    """The estimator `settings.method` chooses (built-in `ComEstimator` or a plug-in class),
-    constructed with `ComEstimator`'s arguments."""
-    settings = settings or EstimatorSettings()
-    cls = resolve_estimator(settings.method)
-    return cls(
-        region_m,
-        contacts_m,
-        normals,
-        pixel_m,
-        settings,
-        outline_m=outline_m,
-        pusher_radius_m=pusher_radius_m,
-    )

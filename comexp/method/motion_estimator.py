@@ -27,14 +27,23 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from comexp.method.estimator import (
+    OUTLINE_CENTRED_TOL_M,
+    SATURATION_BETAS,
     SUBPIXEL,
     EstimatorSettings,
+    ObservedPush,
+    WorldEstimate,
+    as_pose,
+    as_xy,
     choose_contact,
+    floor_force_direction,
     push_candidates,
     refine_grid,
+    region_from_outline,
     weighted_pca,
 )
-from comexp.method.scene import Pose2D
+from comexp.method.frames import Pose2D
+from comexp.method.geometry import centroid
 
 
 @dataclass(frozen=True, eq=False)
@@ -306,8 +315,6 @@ def net_loglik(
     """log-likelihood (n,) of the net turns' sizes: `magnitude`'s model rot_j = k f(l_j) (one
     gain per episode, saturation profiled), with a chance `net_outlier` that a turn is
     unrelated to its lever (the floor turned it), so that no push can rule a CoM out."""
-    from comexp.method.estimator import SATURATION_BETAS
-
     rot = np.array([math.degrees(f.turn_net_rad) for f in feats])
     if len(rot) < 2:
         return np.zeros(len(G))
@@ -424,8 +431,6 @@ def floor_hypotheses(feats: list[PushFeatures], ms: MotionSettings):
 def floor_lines(feats: list[PushFeatures], angle: float, ratio: float, mu_p: float, share: float):
     """Each push's line of action (object frame, unit) on a floor with its low-friction axis at
     world angle `angle` and mu_high / mu_low = `ratio`, pusher friction `mu_p`."""
-    from comexp.method.estimator import floor_force_direction
-
     if ratio == 1.0:
         return [f.N for f in feats]
     return [floor_force_direction(f.N, f.yaw_rad - angle, 1.0, ratio, mu_p, share) for f in feats]
@@ -640,8 +645,6 @@ class MotionEstimator:
         early, direction, _ = self._sums
         ev = logsumexp(early.max(axis=1)[:, None] + direction, axis=0)
         mu_p = ms.mu_p_grid[int(np.argmax(ev))]
-        from comexp.method.estimator import floor_force_direction
-
         yaw = self._yaw_now - angle
         return np.array(
             [floor_force_direction(n, yaw, 1.0, ratio, mu_p, ms.floor_share) for n in self.normals]
@@ -722,17 +725,15 @@ class MotionPush:
     t_end_s: float | None = None  # when the pusher stopped; None: the slide is not used
 
     def __post_init__(self) -> None:
-        from comexp.method.estimator import _as_pose, _xy
-
         set_ = object.__setattr__
-        set_(self, "contact_m", _xy(self.contact_m))
-        d = np.asarray(_xy(self.direction))
+        set_(self, "contact_m", as_xy(self.contact_m))
+        d = np.asarray(as_xy(self.direction))
         if np.linalg.norm(d) == 0:
             raise ValueError("direction must be a non-zero vector")
-        set_(self, "direction", _xy(d / np.linalg.norm(d)))
-        set_(self, "pose_before", _as_pose(self.pose_before))
-        set_(self, "pose_after", _as_pose(self.pose_after))
-        set_(self, "poses", tuple(_as_pose(p) for p in self.poses))
+        set_(self, "direction", as_xy(d / np.linalg.norm(d)))
+        set_(self, "pose_before", as_pose(self.pose_before))
+        set_(self, "pose_after", as_pose(self.pose_after))
+        set_(self, "poses", tuple(as_pose(p) for p in self.poses))
         set_(self, "t_s", tuple(float(t) for t in self.t_s))
         if len(self.t_s) != len(self.poses):
             raise ValueError(f"{len(self.t_s)} times for {len(self.poses)} poses")
@@ -777,13 +778,6 @@ def estimate_com_motion(
     frame). `outline_m` is the footprint in the object frame, centred on its area centroid, as
     for `estimate_com_world`; each push is mapped into the object frame with its own pose
     before the push, and its path is read relative to that pose."""
-    from comexp.method.estimator import (
-        OUTLINE_CENTRED_TOL_M,
-        ObservedPush,
-        WorldEstimate,
-        region_from_outline,
-    )
-    from comexp.method.geometry import centroid
 
     outline = np.asarray(outline_m, dtype=float)
     c = centroid(outline)

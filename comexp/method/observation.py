@@ -24,9 +24,9 @@ import numpy as np
 import shapely
 from numba import njit
 
+from comexp.method.frames import CameraModel, DepthImage, Pose2D
 from comexp.method.geometry import centroid as polygon_centroid
 from comexp.method.geometry import signed_area
-from comexp.method.scene import CameraModel, DepthImage, Pose2D
 
 MIN_HEIGHT_M = 0.004  # anything this far above the floor plane is object
 NORMAL_HALF_WINDOW_PX = 4  # contour pixels on each side used to fit a local tangent line

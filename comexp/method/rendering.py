@@ -13,7 +13,7 @@ import numpy as np
 import shapely
 from numba import njit
 
-from comexp.method.scene import CameraModel, DepthImage, Pose2D
+from comexp.method.frames import CameraModel, DepthImage, Pose2D
 
 
 def _prism_window(camera: CameraModel, outline: np.ndarray, height_m: float, pose: Pose2D):

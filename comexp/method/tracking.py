@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from comexp.method.frames import Pose2D
+from comexp.method.frames import wrap_angle as _wrap  # the tracker's name for it
 from comexp.method.geometry import centroid as polygon_centroid
 from comexp.method.observation import Observation, Perception, TrackingView
-from comexp.method.scene import Pose2D
-from comexp.method.scene import wrap_angle as _wrap  # the tracker's name for it
 
 # A boundary traced on the pixel grid is off the true outline by a quantisation error of about
 # 1/sqrt(12) = 0.29 px rms; fits up to this rms are all "as good as the image tells".

@@ -35,6 +35,7 @@ from comexp.results.reports import (
     group_episodes,
     markdown_table,
 )
+from comexp.results.reports import json_number as num
 
 # The columns a claim varies; the others define a study (see the module docstring).
 VARIED = ("speed_cm_s", "izz_scale", *FRICTION_COLUMNS)
@@ -299,8 +300,6 @@ def claims_markdown(rows: Iterable[Mapping], seed: int = 0, digits: int = 3) -> 
 
 def claims_records(rows: Iterable[Mapping], seed: int = 0) -> dict[str, list[dict]]:
     """`claims_markdown` as JSON-ready records: {"means": [...], "claims": [...]}."""
-    from comexp.results.reports import json_number as num
-
     means, claims = [], []
     for group in studies(rows).values():
         means += [

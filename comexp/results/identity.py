@@ -1,6 +1,7 @@
 """Episode identity: `episode_key`, a hash of the whole spec, so that a resumed or raced sweep
 never stores an episode twice (the database's UNIQUE ``episode_key`` with ``ON CONFLICT DO
-NOTHING``), and the canonical JSON the key and the stored `spec` / `estimator` columns share.
+NOTHING``), the canonical JSON the key and the stored `spec` / `estimator` columns share, and
+that JSON read back (`spec_from_json`).
 """
 
 from __future__ import annotations
@@ -10,9 +11,10 @@ import hashlib
 import json
 import math
 import numbers
+import typing
 from typing import Any
 
-from comexp.experiment.task import EpisodeSpec
+from comexp.episode.task import EpisodeSpec
 
 KEY_VERSION = "v1"  # bump if the key's canonical form changes (old keys then no longer match)
 
@@ -58,3 +60,28 @@ def episode_key(spec: EpisodeSpec) -> str:
     """Identity of an episode: sha256 of every spec field, so fields added later count too."""
     text = KEY_VERSION + ":" + canonical_json(spec)
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def from_json(tp: Any, value: Any) -> Any:
+    """Rebuild a (nested, frozen) dataclass from its canonical JSON: lists become tuples."""
+    if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+        hints = typing.get_type_hints(tp)
+        names = {f.name for f in dataclasses.fields(tp)}
+        unknown = sorted(set(value) - names)
+        if unknown:
+            raise ValueError(
+                f"stored {tp.__name__} has fields this comexp does not know: {', '.join(unknown)}"
+            )
+        return tp(**{k: from_json(hints[k], v) for k, v in value.items()})
+    if isinstance(value, list):
+        return tuple(from_json(None, v) for v in value)
+    if isinstance(value, dict):
+        return {k: from_json(None, v) for k, v in value.items()}
+    if tp is float and isinstance(value, int):
+        return float(value)
+    return value
+
+
+def spec_from_json(text: str) -> EpisodeSpec:
+    """The stored `spec` column back as the `EpisodeSpec` that ran (estimator included)."""
+    return from_json(EpisodeSpec, json.loads(text))

@@ -38,9 +38,14 @@ import matplotlib
 matplotlib.use("Agg")
 
 import numpy as np  # noqa: E402
+import shapely  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from comexp.method.estimator import EstimatorSettings, update_region  # noqa: E402
+from comexp.method.frames import CameraSpec  # noqa: E402
+from comexp.method.observation import hull_region  # noqa: E402
 from comexp.results.filters import EpisodeFilter  # noqa: E402
+from comexp.results.identity import from_json  # noqa: E402
 from comexp.results.reports import (  # noqa: E402
     ALL_OBJECTS,
     EPISODE_COLUMNS,
@@ -434,18 +439,11 @@ def reconstruct_regions(
     stored pushes: the hull's pixel grid at the top face's pixel size, then Algorithm 2 with
     each stored contact, direction and measured rotation. The grid's anchor differs from the
     one the episode's first image gave, so sizes can differ from `region_px` by a few pixels."""
-    import shapely
-
-    from comexp.method.estimator import EstimatorSettings, update_region
-    from comexp.method.observation import hull_region
-    from comexp.method.scene import CameraSpec
-    from comexp.results.api import _from_json
-
     cam = CameraSpec()
     pixel_m = cam.model().pixel_size_m(cam.height_m - float(spec["height_cm"]) / 100.0)
     outline_m = np.asarray(spec["outline_cm"], dtype=float) / 100.0
     hull = np.asarray(shapely.convex_hull(shapely.Polygon(outline_m)).exterior.coords)[:-1]
-    settings = _from_json(EstimatorSettings, json.loads(estimator_json))
+    settings = from_json(EstimatorSettings, json.loads(estimator_json))
     region = hull_region(hull, pixel_m)
     regions = [region]
     for p in pushes:

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from comexp.experiment.config import CameraConfig, EpisodeConfig
+from comexp.episode.task import CameraSettings, EpisodeSettings
 from comexp.method.estimator import EstimatorSettings
 from comexp.results import paper
 from comexp.results.filters import EpisodeFilter
@@ -66,10 +66,10 @@ FRICTION_COLUMNS = ("mu_floor_x", "mu_floor_y", "mu_pusher")
 PAPER_POOL = (*FRICTION_COLUMNS, "izz_scale")
 # Protocol columns shown in a label only when they differ from these defaults: the config's
 PROTOCOL_DEFAULTS: dict[str, Any] = {
-    "mass_kg": EpisodeConfig.mass_kg,
-    "push_length_cm": EpisodeConfig.push_length_cm,
-    "recenter_beyond_cm": EpisodeConfig.recenter_beyond_cm,
-    "camera_fps": CameraConfig.fps,
+    "mass_kg": EpisodeSettings.mass_kg,
+    "push_length_cm": EpisodeSettings.push_length_cm,
+    "recenter_beyond_cm": EpisodeSettings.recenter_beyond_cm,
+    "camera_fps": CameraSettings.fps,
 }
 _DEFAULT_ESTIMATOR: dict[str, Any] = json.loads(canonical_json(EstimatorSettings()))
 STAT_COLUMNS = ("n", "mean", "std", "max", "min")

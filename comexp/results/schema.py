@@ -24,7 +24,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-from comexp.experiment.task import EpisodeResult
+from comexp.episode.task import EpisodeResult
 from comexp.results.identity import canonical_json
 
 # 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics; 4: pushes.n_frames

@@ -40,7 +40,7 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
 from sqlalchemy.pool import StaticPool
 
-from comexp.experiment.task import EpisodeResult
+from comexp.episode.task import EpisodeResult
 from comexp.results import migrations
 from comexp.results.filters import EpisodeFilter
 from comexp.results.identity import episode_key
@@ -99,6 +99,19 @@ def url_password(url: str) -> str | None:
         return make_url(url).password
     except Exception:  # noqa: BLE001
         return None
+
+
+def redact(text: str, url: str | os.PathLike[str]) -> str:
+    """`text` with the database URL's password replaced (the URL itself by its redacted form):
+    the one redaction of every line and file a job writes."""
+    url = os.fspath(url)
+    password = url_password(url)
+    if not password:
+        return text
+    text = text.replace(url, redact_url(url))
+    for form in {password, urllib.parse.quote(password, safe=""), urllib.parse.quote(password)}:
+        text = text.replace(form, "***")
+    return text
 
 
 def _create_engine(url: str | URL, **kwargs: Any) -> Engine:
@@ -483,6 +496,13 @@ class ResultsDB:
                 stored = "none stored" if lo is None else f"stored ids {lo}..{hi}"
                 raise ValueError(f"no episode with id {episode_id} ({stored})")
             return dict(found)
+
+    def sweep(self, sweep_id: int) -> dict[str, Any] | None:
+        """One sweep row (all columns), None when absent."""
+        with self.engine.connect() as conn:
+            q = select(SWEEPS).where(SWEEPS.c.id == sweep_id)
+            found = conn.execute(q).mappings().first()
+            return None if found is None else dict(found)
 
     def count(self, flt: EpisodeFilter | None = None) -> int:
         flt = flt or EpisodeFilter()

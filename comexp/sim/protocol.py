@@ -1,53 +1,35 @@
-"""The one simulator interface and its push protocol, shared by every backend.
+"""The push protocol, written once for every backend: a straight push driven on an engine's
+primitives (`comexp.sim.simulator.Simulator`), its checks, and what it reports.
 
-A backend builds a scene from engine-independent dataclasses (`comexp.method.scene`), renders the
-top-down depth image, executes straight pushes and lets the object come to rest. The push
-protocol (`Simulator.push`, run by `_PushRun`) is written once, here, on primitives each engine
-implements. The true object state is for evaluation, tests and failure detection only; the
-estimator never reads it unless `rotation_source=oracle` is asked for.
-
-What a simulator needs but is not the interface lives beside it: the backends by name and
-their physics identity (`comexp.experiment.registry`), what the camera sees of the object
-(`comexp.experiment.view`), where pusher and object meet (`comexp.experiment.contact`).
-`comexp.experiment.simulator` re-exports all of them under the names they had together.
+`push(sim, cmd)`: start clear of the object, drive the pusher along the push line at the
+commanded speed, hold it until the object is at rest under one settle rule (`at_rest`), back
+it off and park it, classify failures (`classify_state`), and, while the camera watches, hand
+tracking frames over (`Frame`). `_PushRun` runs the three phases and the checks between
+chunks of steps. An engine may offer the protocol's optional capabilities, each an interface
+beside the protocol with the protocol's plain path as the default:
+- `SkipsStillSteps` / `JumpsStillSteps`: steps that cannot move an object at rest are advanced
+  without the checks (stepped, or an engine's jump);
+- `RunsChunks`: several of the protocol's chunks in one call, stopping where the protocol's
+  stop rule (`ChunkStop`; compiled once in `comexp.sim.stop_rule`) says a check could
+  conclude anything.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from comexp.experiment.contact import pusher_clearance_m
-from comexp.experiment.view import outline_radius_m, surely_in_view, surely_in_view_box
-from comexp.method.scene import (
-    CameraModel,
-    DepthImage,
-    ObjectState,
-    Pose2D,
-    PushCommand,
-    SceneSpec,
-    SimSettings,
-    wrap_angle,
-)
-
-# Pusher parking spot (world, m): beyond the floor edge and outside the camera's view at the
-# pusher's top, unreachable by an object still in view.
-PARK_XY_M = (0.0, 0.5)
-
-
-class PushStatus(enum.StrEnum):
-    OK = "ok"
-    TIPPED = "tipped"
-    LEFT_VIEW = "left_view"
-    SIM_UNSTABLE = "sim_unstable"
-    NOT_SETTLED = "not_settled"
-    PATH_BLOCKED = "path_blocked"  # the pusher's start position overlaps the object
+from comexp.method.frames import CameraModel, DepthImage, Pose2D, wrap_angle
+from comexp.sim.clear_steps import clear_steps
+from comexp.sim.contact import pusher_clearance_m
+from comexp.sim.scene import ObjectState, PushCommand, PushStatus, SimSettings
+from comexp.sim.simulator import Simulator
+from comexp.sim.view import outline_radius_m, surely_in_view, surely_in_view_box
 
 
 @dataclass(frozen=True)
@@ -77,7 +59,7 @@ class PushOutcome:
 
 @dataclass(frozen=True)
 class Frame:
-    """A depth image taken during a push (`Simulator.push(on_frame=...)`).
+    """A depth image taken during a push (`push(sim, cmd, on_frame=...)`).
 
     The pusher may be in it: the engines render their pusher, touching the object's side.
     Where it is (the pusher's axis, world m) and its radius are known to the robot, so the
@@ -93,21 +75,26 @@ class Frame:
 
 @dataclass(frozen=True)
 class ChunkStop:
-    """Where a backend that runs several of the protocol's chunks in one call
-    (`Simulator._advance_chunks`) stops, so that the protocol's own check sees that chunk's
+    """Where an engine that runs several of the protocol's chunks in one call
+    (`RunsChunks.advance_chunks`) stops, so that the protocol's own check sees that chunk's
     state: after a chunk that leaves the state not finite, the object tilted (planar: not
     flat on the floor; an engine, whose object never is exactly: half way to `tip_limit_deg`),
     its frame's origin outside `box` (x_lo, x_hi, y_lo, y_hi: `surely_in_view_box`), the
-    engine with a failure of its own (`_engine_failure`), or, after the chunks `rest_after`
+    engine with a failure of its own (`engine_failure`), or, after the chunks `rest_after`
     marks, the object near rest (the origin's |v_x| + |v_y| below `rest_speed_m_s` and
     |omega_z| below `rest_spin_rad_s`: twice the settle limits, a superset of `at_rest`).
     Every chunk it does not stop after is one the check passes without a failure, a
-    rendered frame or a rest."""
+    rendered frame or a rest. The rule itself is compiled once (`comexp.sim.stop_rule`), for
+    every engine that runs chunks in compiled code."""
 
     box: tuple[float, float, float, float]
     rest_speed_m_s: float
     rest_spin_rad_s: float
     rest_after: np.ndarray  # bool, one per chunk of the call
+
+    def rule(self) -> np.ndarray:
+        """(x_lo, x_hi, y_lo, y_hi, rest speed, rest spin): `stop_rule.chunk_stops`' `rule`."""
+        return np.array([*self.box, self.rest_speed_m_s, self.rest_spin_rad_s])
 
 
 def classify_state(
@@ -144,261 +131,6 @@ def classify_state(
     return None
 
 
-class Simulator(ABC):
-    """One engine instance behind the shared push protocol.
-
-    `build` may be called many times (scene reuse is the backend's job). The protocol of a push
-    (`push`: start clear, move along the normal for the travel, stop, wait for rest under one
-    settle rule, clear the pusher, classify failures) is written once, here; an engine
-    implements only the primitives below it (place and drive the pusher, advance, read the
-    state), so that a cross-engine comparison compares physics, not protocols.
-    """
-
-    name: str = ""
-    # steps advanced between two failure / rest checks: 10 ms for every built-in backend (each
-    # runs a chunk of steps in one compiled call between the protocol's checks in Python); a
-    # plug-in backend may take another; part of the protocol's settings
-    check_every_steps: int = 10
-    # an engine's jump of still steps (`_steps_still`): a `StillJumps` (backends/physics_
-    # settings.py: the pusher's clearance beyond a step's length, the most tilt an object at
-    # rest by the settle rule may have); None: still steps are stepped
-    still_jumps: Any = None
-    # `_advance_chunks` runs several chunks in one call (the backend's pusher is then on its
-    # target after every chunk, and it stops after a chunk where `_engine_failure` would say
-    # anything)
-    batches_chunks: bool = False
-
-    def __init__(self, settings: SimSettings | None = None) -> None:
-        self.settings = settings or SimSettings()
-        # when a list, every step's ObjectState is appended to it (physics tests: lift, tilt)
-        self.trace: list[ObjectState] | None = None
-
-    @abstractmethod
-    def build(self, scene: SceneSpec) -> None:
-        """(Re)create floor, object at `scene.initial_pose` resting on the floor, the pusher
-        parked out of the camera's view, and the camera."""
-
-    @abstractmethod
-    def render_depth(self) -> DepthImage:
-        """Top-down metric depth image of the current scene (pusher parked, out of view)."""
-
-    @abstractmethod
-    def object_state(self) -> ObjectState:
-        """True state of the object frame: evaluation and tests only."""
-
-    # --- protocol primitives -------------------------------------------------------------
-    @abstractmethod
-    def _place_pusher(self, xy: np.ndarray | Sequence[float]) -> None:
-        """Put the pusher at rest at a world point (only called where it is clear of the
-        object: the start of a push, the parking spot)."""
-
-    @abstractmethod
-    def _pusher_xy(self) -> np.ndarray:
-        """The pusher axis' actual world position."""
-
-    @abstractmethod
-    def _advance(self, targets: np.ndarray) -> tuple[bool, float]:
-        """Run len(targets) steps; the pusher reaches targets[i] (world, m) at the end of
-        step i, moving straight between them. Returns (pusher touched the object during these
-        steps, max tilt in deg over them). Appends every step's state to `trace` if set (planar:
-        every step of its model, which takes one for several where the motion is slow)."""
-
-    def render_tracking_depth(self) -> DepthImage:
-        """The depth image of a tracking frame taken during a push; an engine may override it
-        with a cheaper renderer that keeps the camera's projection: the engines render only
-        the window of the image the object can cover (`object_window_px`), returned with the
-        camera model of that window (`crop_camera`), so its pixels map to the same world points
-        as the full image's."""
-        return self.render_depth()
-
-    def _raycast_depth(self) -> DepthImage:
-        """The exact ray-cast depth image of the prism at the true pose (`camera.renderer=
-        raycast`): an engine's alternative to its own renderer, the same pixels as planar's."""
-        from comexp.method.rendering import render_prism_depth
-
-        scene = self._scene_or_fail()
-        return render_prism_depth(
-            self._camera_model(), self._outline_m(), scene.obj.height_m, self.object_state().pose
-        )
-
-    def _raycast_tracking_depth(self) -> DepthImage:
-        """`_raycast_depth`'s pixels of the window the prism can cover only, with that
-        window's camera model (`render_prism_window_depth`): a tracking frame's image."""
-        from comexp.method.rendering import render_prism_window_depth
-
-        scene = self._scene_or_fail()
-        return render_prism_window_depth(
-            self._camera_model(), self._outline_m(), scene.obj.height_m, self.object_state().pose
-        )
-
-    def _steps_still(self, targets: np.ndarray) -> int:
-        """How many of the pusher's next `targets` (one per step) surely leave the object as
-        it is: the protocol advances them without its checks (`_advance_still`), each of
-        which would see the same resting object. 0: unknown, check every chunk.
-
-        An engine's object never comes exactly to rest: it creeps and bobs at the contacts'
-        numerical scale. With `still_jumps` set, an object at rest by the settle rule
-        (`at_rest`) and flat (tilted less than `max_tilt_deg`: not one falling back from a
-        lift) counts as at rest, and the steps in which the pusher stays farther from its
-        outline than the step is long plus `margin_m` (`clear_steps`, beyond the reach of
-        any contact a step could make) are jumped. A backend whose object is exactly at rest
-        (planar) proves it and steps them."""
-        jumps = self.still_jumps
-        if jumps is None:
-            return 0
-        st = self.object_state()
-        if not at_rest(st, self.settings) or not st.tilt_deg < jumps.max_tilt_deg:
-            return 0
-        from comexp.experiment.clear_steps import clear_steps
-
-        poly = st.pose.to_world(self._outline_m())
-        q = self._pusher_xy()
-        pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
-        r = self._pusher_radius_m()
-        return clear_steps(float(q[0]), float(q[1]), pts, poly, r, jumps.margin_m)
-
-    def _advance_still(self, targets: np.ndarray) -> bool:
-        """Advance steps `_steps_still` counted; whether the pusher touched the object. They
-        are stepped, or with `still_jumps` jumped: time passes, the object's state is
-        kept as it is (a resting object stays at rest), the pusher ends on `targets[-1]` as
-        stepping would leave it (`_jump_pusher`)."""
-        if self.still_jumps is None:
-            return self._advance(targets)[0]
-        self._jump_pusher(targets)
-        if self.trace is not None:
-            self.trace.extend([self.object_state()] * len(targets))
-        return False
-
-    def _jump_pusher(self, targets: np.ndarray) -> None:
-        """Put the pusher where, and moving as, `_advance(targets)` would leave it, without
-        stepping; no contact. A backend that sets `still_jumps` implements it."""
-        raise NotImplementedError(f"{self.name}: still_jumps set without _jump_pusher")
-
-    def _advance_chunks(
-        self, targets: np.ndarray, chunk: int, stop: ChunkStop
-    ) -> list[tuple[bool, float, float]]:
-        """With `batches_chunks`: advance the whole chunks of `targets` (`chunk` steps each,
-        every one exactly as an `_advance` call of it), stopping after the first one whose
-        state `stop` names; per chunk advanced, (touched, its tilt as `_advance` returns it,
-        the yaw `object_state().pose.yaw_rad` would then read; an engine's tilt also covers
-        `object_state().tilt_deg`'s, which the protocol's check adds and `_passed` does
-        not)."""
-        raise NotImplementedError(f"{self.name}: batches_chunks set without _advance_chunks")
-
-    def _engine_failure(self) -> PushStatus | None:
-        """An engine's own sign of trouble (e.g. solver warnings); None when healthy."""
-        return None
-
-    def _park_xy(self) -> tuple[float, float]:
-        return PARK_XY_M
-
-    # --- the push protocol ---------------------------------------------------------------
-    def push(
-        self,
-        cmd: PushCommand,
-        on_frame: Callable[[Frame], None] | None = None,
-        frame_interval_s: float = 0.0,
-        on_still: Callable[[float], None] | None = None,
-        frame_wanted: Callable[[float, bool], bool] | None = None,
-    ) -> PushOutcome:
-        """Execute the push, let the object come to rest, clear and park the pusher, report.
-
-        With `on_frame` and `frame_interval_s` > 0 the camera watches the push: at the first
-        protocol check at or after every multiple of `frame_interval_s` since the push began,
-        if the object is moving (not `at_rest`), a tracking frame is rendered and handed over;
-        if it is at rest, nothing is rendered (a still object shows nothing new) and `on_still`
-        gets the frame's time, so that a tracker knows the object stopped there.
-        `frame_wanted(t_s, driving)`, if given, is asked before a moving frame is rendered
-        (`driving`: the pusher is still moving along the push line); a frame it declines is
-        neither rendered nor handed over, as a tracker that skips a camera frame never looks
-        at it. It is a question without side effects: the protocol may ask it ahead, for the
-        due frames up to the next one rendered (`_PushRun._batch`).
-        Frames hang on the existing checks, so the steps an engine is asked for (`_advance`
-        calls) are the same with or without frames: watching never changes the physics. The
-        rate is therefore `1 / frame_interval_s` on average, each frame up to one check
-        (`check_every_steps` steps) late.
-
-        The three phases (drive, settle, retract) and the checks between chunks of steps are
-        `_PushRun`'s; this method starts the push and reports it.
-        """
-        camera = self._camera_model()
-        outline = self._outline_m()
-        before = self.object_state()
-        start = np.asarray(cmd.start_xy_m, dtype=float)
-        direction = np.asarray(cmd.direction_xy, dtype=float)
-        if pusher_clearance_m(start, before, outline, self._pusher_radius_m()) < 0.0:
-            return PushOutcome(
-                PushStatus.PATH_BLOCKED,
-                before.pose,
-                before.pose,
-                0.0,
-                0,
-                False,
-                0.0,
-                before.tilt_deg,
-            )
-        self._place_pusher(start)
-        run = _PushRun(
-            self, camera, outline, before, on_frame, frame_interval_s, on_still, frame_wanted
-        )
-        run.drive(cmd, start, direction)
-        run.settle(cmd, start, direction)
-        run.retract(direction)
-        return run.finish(before)
-
-    # the scene the protocol needs (every backend keeps the SceneSpec it built)
-    def _scene_or_fail(self) -> SceneSpec:
-        scene = getattr(self, "_scene", None)
-        if scene is None:
-            raise RuntimeError("build() a scene first")
-        return scene
-
-    def _scene_views(self) -> tuple[CameraModel, np.ndarray]:
-        """The built scene's camera model and outline array, made once per scene: every
-        push and every tracking frame asks for them (callers must not write the outline)."""
-        scene = self._scene_or_fail()
-        views = getattr(self, "_views_of_scene", None)
-        if views is None or views[0] is not scene:
-            outline = np.asarray(scene.obj.outline_m, dtype=float)
-            views = self._views_of_scene = (scene, scene.camera.model(), outline)
-        return views[1], views[2]
-
-    def _camera_model(self) -> CameraModel:
-        return self._scene_views()[0]
-
-    def _outline_m(self) -> np.ndarray:
-        return self._scene_views()[1]
-
-    def _pusher_radius_m(self) -> float:
-        return self._scene_or_fail().pusher.radius_m
-
-    def true_pose(self) -> Pose2D:
-        return self.object_state().pose
-
-    # --- test hooks: used by physics validation, never by the estimator ---------------------
-    @abstractmethod
-    def set_object_velocity(
-        self, linear_m_s: tuple[float, float, float], angular_rad_s: tuple[float, float, float]
-    ) -> None:
-        """Overwrite the object's velocity (world frame; linear = the object frame origin's)."""
-
-    def step(self, duration_s: float) -> None:
-        """Advance the simulation by `duration_s` (rounded to whole steps), pusher held still."""
-        self._scene_or_fail()
-        n = max(0, round(duration_s / self.settings.timestep_s))
-        if n:
-            self._advance(np.repeat(self._pusher_xy()[None, :], n, axis=0))
-
-    def close(self) -> None:  # noqa: B027 - optional hook
-        """Release engine resources."""
-
-    def __enter__(self) -> Simulator:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
 def at_rest(state: ObjectState, s: SimSettings) -> bool:
     """The one settle rule: what the camera and the estimator see is at rest, i.e. the object
     frame's origin (a point of the bottom face) moves slower than `settle_speed_m_s` across
@@ -413,6 +145,134 @@ def at_rest(state: ObjectState, s: SimSettings) -> bool:
         math.hypot(v[0], v[1]) < s.settle_speed_m_s
         and abs(state.angular_velocity_rad_s[2]) < s.settle_spin_rad_s
     )
+
+
+def push(
+    sim: Simulator,
+    cmd: PushCommand,
+    on_frame: Callable[[Frame], None] | None = None,
+    frame_interval_s: float = 0.0,
+    on_still: Callable[[float], None] | None = None,
+    frame_wanted: Callable[[float, bool], bool] | None = None,
+) -> PushOutcome:
+    """Execute the push on `sim`, let the object come to rest, clear and park the pusher,
+    report.
+
+    With `on_frame` and `frame_interval_s` > 0 the camera watches the push: at the first
+    protocol check at or after every multiple of `frame_interval_s` since the push began,
+    if the object is moving (not `at_rest`), a tracking frame is rendered and handed over;
+    if it is at rest, nothing is rendered (a still object shows nothing new) and `on_still`
+    gets the frame's time, so that a tracker knows the object stopped there.
+    `frame_wanted(t_s, driving)`, if given, is asked before a moving frame is rendered
+    (`driving`: the pusher is still moving along the push line); a frame it declines is
+    neither rendered nor handed over, as a tracker that skips a camera frame never looks
+    at it. It is a question without side effects: the protocol may ask it ahead, for the
+    due frames up to the next one rendered (`_PushRun._batch`).
+    Frames hang on the existing checks, so the steps an engine is asked for (`advance`
+    calls) are the same with or without frames: watching never changes the physics. The
+    rate is therefore `1 / frame_interval_s` on average, each frame up to one check
+    (`check_every_steps` steps) late.
+
+    The three phases (drive, settle, retract) and the checks between chunks of steps are
+    `_PushRun`'s; this function starts the push and reports it.
+    """
+    camera = sim.camera_model()
+    outline = sim.outline_m()
+    before = sim.object_state()
+    start = np.asarray(cmd.start_xy_m, dtype=float)
+    direction = np.asarray(cmd.direction_xy, dtype=float)
+    if pusher_clearance_m(start, before, outline, sim.pusher_radius_m()) < 0.0:
+        return PushOutcome(
+            PushStatus.PATH_BLOCKED, before.pose, before.pose, 0.0, 0, False, 0.0, before.tilt_deg
+        )
+    sim.place_pusher(start)
+    run = _PushRun(sim, camera, outline, before, on_frame, frame_interval_s, on_still, frame_wanted)
+    run.drive(cmd, start, direction)
+    run.settle(cmd, start, direction)
+    run.retract(direction)
+    return run.finish(before)
+
+
+# --- optional capabilities of an engine ----------------------------------------------------
+
+
+class SkipsStillSteps(ABC):
+    """An engine that knows which of the pusher's next steps cannot move an object at rest:
+    the protocol advances them without its checks (`_PushRun.skip_still`), each of which
+    would see the same resting object. Without it, every chunk is checked."""
+
+    @abstractmethod
+    def steps_still(self, targets: np.ndarray) -> int:
+        """How many of the pusher's next `targets` (one per step) surely leave the object as
+        it is; 0: unknown, check every chunk. planar proves it on its exact state."""
+
+    def advance_still(self, targets: np.ndarray) -> bool:
+        """Advance steps `steps_still` counted; whether the pusher touched the object.
+        Stepped, by default."""
+        return self.advance(targets)[0]  # type: ignore[attr-defined]
+
+
+class JumpsStillSteps(SkipsStillSteps):
+    """An engine whose object never comes exactly to rest (it creeps and bobs at the
+    contacts' numerical scale), and which jumps the still steps instead of stepping them.
+
+    With `still_jumps` (`comexp.backends.physics_settings.StillJumps`), an object at rest by
+    the settle rule (`at_rest`) and flat (tilted less than `max_tilt_deg`: not one falling
+    back from a lift) counts as at rest, and the steps in which the pusher stays farther from
+    its outline than the step is long plus `margin_m` (`clear_steps`, beyond the reach of any
+    contact a step could make) are jumped: time passes, the object's state is kept, the
+    pusher ends where stepping would leave it (`jump_pusher`). `still_jumps` None: every step
+    is stepped (a comparison's baseline)."""
+
+    still_jumps: Any
+
+    @abstractmethod
+    def jump_pusher(self, targets: np.ndarray) -> None:
+        """Put the pusher where, and moving as, `advance(targets)` would leave it, without
+        stepping; no contact."""
+
+    def steps_still(self, targets: np.ndarray) -> int:
+        sim: Any = self
+        jumps = self.still_jumps
+        if jumps is None:
+            return 0
+        st = sim.object_state()
+        if not at_rest(st, sim.settings) or not st.tilt_deg < jumps.max_tilt_deg:
+            return 0
+        poly = st.pose.to_world(sim.outline_m())
+        q = sim.pusher_xy()
+        pts = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 2)
+        r = sim.pusher_radius_m()
+        return clear_steps(float(q[0]), float(q[1]), pts, poly, r, jumps.margin_m)
+
+    def advance_still(self, targets: np.ndarray) -> bool:
+        sim: Any = self
+        self.jump_pusher(targets)
+        if sim.trace is not None:
+            sim.trace.extend([sim.object_state()] * len(targets))
+        return False
+
+
+class RunsChunks(ABC):
+    """An engine that runs several of the protocol's chunks in one call (its pusher is then on
+    its target after every chunk), stopping after a chunk where the protocol's check could
+    conclude anything (`ChunkStop`). Without it, one chunk a call."""
+
+    def runs_chunks(self) -> bool:
+        """Whether this instance runs chunks in one call (an engine may do so under some of
+        its options only)."""
+        return True
+
+    @abstractmethod
+    def advance_chunks(
+        self, targets: np.ndarray, chunk: int, stop: ChunkStop
+    ) -> list[tuple[bool, float, float]]:
+        """Advance the whole chunks of `targets` (`chunk` steps each, every one exactly as an
+        `advance` call of it), stopping after the first one whose state `stop` names; per
+        chunk advanced, (touched, its tilt as `advance` returns it, the yaw
+        `object_state().pose.yaw_rad` would then read; an engine's tilt also covers
+        `object_state().tilt_deg`'s, which the protocol's check adds and `_passed` does
+        not)."""
 
 
 # settle: the most chunks `_PushRun.advance` is handed at once (a batching backend's call)
@@ -479,15 +339,18 @@ class _PushRun:
 
     def skip_still(self, targets: np.ndarray) -> int:
         """Advance the leading steps of `targets` that cannot move the object, in whole
-        chunks, as one call (`Simulator._advance_still`: stepped, or an engine's jump); the
-        checks they span are those of an object at rest (no failure, no turn; a due frame is
-        a still one). Returns how many were advanced."""
+        chunks, as one call (`SkipsStillSteps.advance_still`: stepped, or an engine's jump);
+        the checks they span are those of an object at rest (no failure, no turn; a due frame
+        is a still one). Returns how many were advanced (0 on an engine without the
+        capability)."""
         sim, s, chunk = self.sim, self.s, self.chunk
-        n = min(sim._steps_still(targets), len(targets)) // chunk * chunk - chunk
+        if not isinstance(sim, SkipsStillSteps):
+            return 0
+        n = min(sim.steps_still(targets), len(targets)) // chunk * chunk - chunk
         if n <= 0:
             return 0
         pose0 = sim.object_state().pose
-        touched = sim._advance_still(targets[:n])
+        touched = sim.advance_still(targets[:n])
         after = sim.object_state()
         if touched or after.pose != pose0 or not at_rest(after, s):
             raise RuntimeError(f"{sim.name}: the object moved in steps declared still")
@@ -501,7 +364,7 @@ class _PushRun:
 
     def run(self, targets: np.ndarray, driving: bool = False) -> ObjectState:
         """Advance one chunk of steps, then check: failures, turn, tilt, a due frame."""
-        touched, tilt = self.sim._advance(targets)
+        touched, tilt = self.sim.advance(targets)
         return self._check(len(targets), touched, tilt, driving)
 
     def advance(
@@ -509,14 +372,15 @@ class _PushRun:
     ) -> tuple[int, ObjectState]:
         """`run` the first chunk of `targets`; returns the steps advanced and the state.
 
-        A backend that batches chunks (`Simulator.batches_chunks`) runs the whole chunks up
+        An engine that runs several chunks in one call (`RunsChunks`) runs the whole chunks up
         to the first one whose check may do more than bookkeeping (`_batch`) in one call,
         stopping early where its `ChunkStop` says (`near_rest`: near rest too, for the settle
         rule); the chunks it passes get the bookkeeping their checks would do (`_passed`),
         the last one the full check. The steps, and what the checks conclude, are those of
         one `run` after another (tests/test_planar.py)."""
         chunk = self.chunk
-        n = len(targets) // chunk if self.sim.batches_chunks else 1
+        batches = isinstance(self.sim, RunsChunks) and self.sim.runs_chunks()
+        n = len(targets) // chunk if batches else 1
         k, declined = self._batch(n, driving)
         if k <= 1:  # one chunk, or a part of one (the end of a path)
             return len(targets[:chunk]), self.run(targets[:chunk], driving)
@@ -527,7 +391,7 @@ class _PushRun:
         stop = ChunkStop(
             self.box, 2.0 * self.s.settle_speed_m_s, 2.0 * self.s.settle_spin_rad_s, rest
         )
-        done = self.sim._advance_chunks(targets[: k * chunk], chunk, stop)
+        done = self.sim.advance_chunks(targets[: k * chunk], chunk, stop)  # type: ignore[attr-defined]
         for touched, tilt, yaw in done[:-1]:
             self._passed(chunk, touched, tilt, yaw)
         touched, tilt, _ = done[-1]
@@ -579,7 +443,7 @@ class _PushRun:
             self.turned += wrap_angle(st.pose.yaw_rad - self.last_yaw)
             self.last_yaw = st.pose.yaw_rad
         self.max_tilt = max(self.max_tilt, tilt, st.tilt_deg if st.is_finite else 0.0)
-        self.status = sim._engine_failure() or classify_state(
+        self.status = sim.engine_failure() or classify_state(
             st, self.outline, self.camera, s, self.radius
         )
         t_s = self.steps * self.dt
@@ -588,12 +452,12 @@ class _PushRun:
                 if self.on_still is not None:
                     self._tell_still(t_s)
             elif self._wanted(t_s, driving):
-                xy = sim._pusher_xy()
+                xy = sim.pusher_xy()
                 frame = Frame(
                     sim.render_tracking_depth(),
                     t_s,
                     (float(xy[0]), float(xy[1])),
-                    sim._pusher_radius_m(),
+                    sim.pusher_radius_m(),
                 )
                 self.on_frame(frame)  # type: ignore[misc]
                 self.n_frames += 1
@@ -626,7 +490,7 @@ class _PushRun:
         while k < n_move and self.status is None:
             n, _ = self.advance(path[k:], driving=True)
             k += n
-            dx, dy = (self.sim._pusher_xy() - path[k - 1]).tolist()
+            dx, dy = (self.sim.pusher_xy() - path[k - 1]).tolist()
             self.lag = max(self.lag, math.hypot(dx, dy))
 
     def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
@@ -663,7 +527,7 @@ class _PushRun:
         if self.status is not None:
             return
         s, dt, chunk = self.s, self.dt, self.chunk
-        end = self.sim._pusher_xy()
+        end = self.sim.pusher_xy()
         n_back = math.ceil(s.retract_m / (s.retract_speed_m_s * dt))
         back = np.minimum(s.retract_speed_m_s * dt * np.arange(1, n_back + 1), s.retract_m)
         i = 0
@@ -683,11 +547,9 @@ class _PushRun:
         status = self.status
         if status is None or status is PushStatus.NOT_SETTLED:
             status = classify_state(after, self.outline, self.camera, s, self.radius) or status
-        clearance = pusher_clearance_m(
-            sim._pusher_xy(), after, self.outline, sim._pusher_radius_m()
-        )
+        clearance = pusher_clearance_m(sim.pusher_xy(), after, self.outline, sim.pusher_radius_m())
         if clearance > s.clear_m:
-            sim._place_pusher(sim._park_xy())
+            sim.place_pusher(sim.park_xy())
         max_tilt = max(self.max_tilt, after.tilt_deg) if after.is_finite else self.max_tilt
         return PushOutcome(
             status=status or PushStatus.OK,

@@ -1,6 +1,6 @@
 """The task of an episode: what is pushed (scene, push commands) and what is scored (results).
 
-An episode is a task run by a loop (`comexp.experiment.episode.run_episode`), kept apart as
+An episode is a task run by a loop (`comexp.episode.loop.run_episode`), kept apart as
 dm_control keeps its Task apart from its Physics. Everything an episode needs travels in
 `EpisodeSpec` (plain data, picklable for Ray): the object's polygon is included so that workers
 never read config files. What is pushed: the scene an `EpisodeSpec` describes (`build_scene`)
@@ -17,15 +17,35 @@ from typing import Any
 
 import numpy as np
 
-from comexp.experiment.config import CameraConfig, EpisodeConfig
-from comexp.experiment.contact import contact_push
-from comexp.experiment.objects import object_model
 from comexp.method.estimator import EstimatorSettings
-from comexp.method.scene import FloorSpec, Pose2D, PushCommand, PusherSpec, SceneSpec
+from comexp.method.frames import Pose2D
+from comexp.sim.bodies import prism_object
+from comexp.sim.contact import contact_push
+from comexp.sim.scene import FloorSpec, ObjectSpec, PushCommand, PusherSpec, SceneSpec
 
-# the protocol's defaults are the structured config's (one place: comexp.experiment.config)
-_EPISODE_DEFAULTS = EpisodeConfig()
-_CAMERA_DEFAULTS = CameraConfig()
+
+@dataclass
+class EpisodeSettings:
+    """The push protocol of every episode (the `episode` config node; docs/method.md,
+    "Episode runner"): the one place its defaults are written."""
+
+    push_length_cm: float = 3.0  # how far the pusher goes past the contact point (paper: 3 cm)
+    recenter_beyond_cm: float = 10.0  # put the object back at the centre beyond this; 0: never
+    mass_kg: float = 0.2  # the object's mass (paper: 0.2 kg)
+
+
+@dataclass
+class CameraSettings:
+    """The depth camera (the `camera` config node). `fps`: tracking frames per second while
+    the object moves during a push, so that the rotation is followed frame to frame
+    (unwrapped); 0 = the images before and after each push only. The default is the lowest
+    measured rate that unwraps every rotation of the study (docs/method.md, "Tracking during
+    the push")."""
+
+    fps: float = 30.0
+    # how the engines make depth images: raycast (the exact ray cast of the prism at the
+    # engine's pose, planar's camera) | engine (the engine's own renderer); docs/method.md
+    renderer: str = "raycast"
 
 
 @dataclass(frozen=True)
@@ -42,22 +62,22 @@ class EpisodeSpec:
     height_cm: float
     com_index: int
     com_cm: tuple[float, float]  # true CoM, object frame
-    mass_kg: float = _EPISODE_DEFAULTS.mass_kg
-    push_length_cm: float = _EPISODE_DEFAULTS.push_length_cm
+    mass_kg: float = EpisodeSettings.mass_kg
+    push_length_cm: float = EpisodeSettings.push_length_cm
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
     seed: int = 0
     # Protocol: after a push that leaves the object's origin farther than this from the floor
     # centre, the object is put back at the centre (same yaw, at rest) before the next image, as
     # an experimenter would; 0 disables. A 40 cm/s push slides an object ~11 cm on the mu 0.1
     # floor, so without this about 15% of 5-push episodes there leave the 0.6 m floor.
-    recenter_beyond_cm: float = _EPISODE_DEFAULTS.recenter_beyond_cm
+    recenter_beyond_cm: float = EpisodeSettings.recenter_beyond_cm
     # What determines the physics (`comexp.experiment.registry.physics_identity`: backend
     # model revision, engine version, backend and protocol settings); part of the episode's
     # identity, so a database is never resumed across physics versions. "" = not pinned.
     physics: str = ""
     # Tracking frames per second taken while the object moves during a push (`camera.fps`);
     # 0 = the images before and after each push only. Vision only (the oracle needs none).
-    camera_fps: float = _CAMERA_DEFAULTS.fps  # `camera.fps`'s default (docs/method.md)
+    camera_fps: float = CameraSettings.fps  # `camera.fps`'s default (docs/method.md)
 
     @classmethod
     def for_object(
@@ -112,6 +132,29 @@ class EpisodeResult:
 def initial_yaw_rad(seed: int) -> float:
     """The object's initial yaw for an episode: uniform in [-pi, pi), a function of the seed."""
     return float(np.random.default_rng([seed, 0x5EED]).uniform(-math.pi, math.pi))
+
+
+def object_model(
+    name: str,
+    outline_cm: Sequence[Sequence[float]],
+    height_cm: float,
+    com_cm: Sequence[float],
+    *,
+    izz_scale: float,
+    mu_pusher: float,
+    mass_kg: float,
+) -> ObjectSpec:
+    """The simulator's rigid-body model (SI units) of an object definition (cm) with its CoM at
+    `com_cm`: the one conversion, used by every episode (`build_scene`)."""
+    return prism_object(
+        name,
+        [(x / 100.0, y / 100.0) for x, y in outline_cm],
+        height_cm / 100.0,
+        (com_cm[0] / 100.0, com_cm[1] / 100.0),
+        mass_kg=mass_kg,
+        izz_scale=izz_scale,
+        mu_pusher=mu_pusher,
+    )
 
 
 def build_scene(spec: EpisodeSpec, pusher: PusherSpec | None = None) -> SceneSpec:

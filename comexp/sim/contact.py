@@ -11,17 +11,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comexp.method.scene import ObjectState, PushCommand, PusherSpec
+from comexp.sim.clear_steps import closest_on_polygon
+from comexp.sim.scene import ObjectState, PushCommand, PusherSpec
 
 
 def point_polygon_distance(pt: np.ndarray | Sequence[float], poly: np.ndarray) -> float:
-    """Signed distance from a point to a simple polygon's boundary (negative inside).
-
-    The compiled closest point (`clear_steps.closest_on_polygon`, ~0.6 us against ~40 of
-    numpy calls), imported here on first use: the driver imports this module and loads no
-    Numba."""
-    from comexp.experiment.clear_steps import closest_on_polygon
-
+    """Signed distance from a point to a simple polygon's boundary (negative inside): the
+    compiled closest point (`clear_steps.closest_on_polygon`, ~0.6 us against ~40 of numpy
+    calls)."""
     poly = np.ascontiguousarray(poly, dtype=np.float64)
     _, _, d, inside = closest_on_polygon(float(pt[0]), float(pt[1]), poly)
     return -d if inside else d

@@ -2,32 +2,34 @@
 
 Build, perceive, then n_push times choose a contact (Alg. 1), push, measure the rotation,
 update the region (Alg. 2). What is pushed and what is scored is the task's
-(`comexp.experiment.task`: `EpisodeSpec`, `build_scene`, `push_command`, `Scoring`); this
+(`comexp.episode.task`: `EpisodeSpec`, `build_scene`, `push_command`, `Scoring`); this
 module is the loop that runs it, with the experimenter's protocol between pushes (re-centring
-an object that drifted off). Its names for perception (`perceive_first`, `observe`,
-`PoseTracker`, ...) are looked up here at run time, where a benchmark may swap them.
+an object that drifted off). The pushes go through the one push protocol
+(`comexp.sim.protocol.push`).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
-from comexp.experiment.interface import Frame, PushOutcome, Simulator
-from comexp.experiment.task import (
+from comexp.episode.task import (
     EpisodeResult,
     EpisodeSpec,
     PushRecord,
     Scoring,
     build_scene,
     failed_result,
-    initial_yaw_rad,
     push_command,
 )
-from comexp.method.estimator import EstimatorSettings, floor_force_direction, make_estimator
+from comexp.episode.timing import NO_TIMER, Timer
+from comexp.method.estimator import floor_force_direction
+from comexp.method.estimators import make_estimator
+from comexp.method.frames import Pose2D, wrap_angle
 from comexp.method.motion_estimator import PushPath
 from comexp.method.observation import (
     PerceptionError,
@@ -36,18 +38,10 @@ from comexp.method.observation import (
     observe_boundary,
     perceive_first,
 )
-from comexp.method.scene import Pose2D, PushCommand, wrap_angle
 from comexp.method.tracking import PoseTracker
-
-__all__ = [
-    "EpisodeResult",
-    "EpisodeSpec",
-    "EstimatorSettings",
-    "PushRecord",
-    "build_scene",
-    "initial_yaw_rad",
-    "run_episode",
-]
+from comexp.sim.protocol import Frame, PushOutcome, push
+from comexp.sim.scene import PushCommand
+from comexp.sim.simulator import Simulator
 
 
 def needs_recentering(pose: Pose2D, recenter_beyond_cm: float) -> bool:
@@ -56,16 +50,23 @@ def needs_recentering(pose: Pose2D, recenter_beyond_cm: float) -> bool:
     return recenter_beyond_cm > 0 and math.hypot(pose.x_m, pose.y_m) * 100.0 > recenter_beyond_cm
 
 
-def run_episode(spec: EpisodeSpec, sim: Simulator) -> EpisodeResult:
+# a push protocol: `comexp.sim.protocol.push`, or a test's ideal kinematics in its place
+PushFn = Callable[..., PushOutcome]
+
+
+def run_episode(
+    spec: EpisodeSpec, sim: Simulator, push: PushFn = push, timer: Timer = NO_TIMER
+) -> EpisodeResult:
     """One CoM estimation: build, perceive, then n_push times choose a contact (Alg. 1), push,
     measure the rotation, update the region (Alg. 2). Never raises: failures are results.
 
     The estimator works in its own frame (the first image's world frame, origin at the hull
     centroid). The true initial pose is used only at the end, to express the estimate and the
     push records in the object's own frame for evaluation; the true pose during the episode
-    only with `rotation_source=oracle`.
+    only with `rotation_source=oracle`. `timer` is told where the time goes
+    (`comexp.episode.timing`: benchmarks).
     """
-    loop = _EpisodeLoop(spec, sim, time.perf_counter())
+    loop = _EpisodeLoop(spec, sim, push, timer, time.perf_counter())
     try:
         return loop.run()
     except PerceptionError as exc:
@@ -78,9 +79,13 @@ class _EpisodeLoop:
     """One run of `run_episode`: the pushes so far, the simulated time, the notes, and the
     estimator frame's current pose (`frame`) beside the object's true one (`true_prev`)."""
 
-    def __init__(self, spec: EpisodeSpec, sim: Simulator, t0: float) -> None:
+    def __init__(
+        self, spec: EpisodeSpec, sim: Simulator, push: PushFn, timer: Timer, t0: float
+    ) -> None:
         self.spec = spec
         self.sim = sim
+        self.push = push
+        self.timer = timer
         self.settings = spec.estimator
         self.t0 = t0
         self.pushes: list[PushRecord] = []
@@ -93,11 +98,12 @@ class _EpisodeLoop:
         return failed_result(self.spec, reason, detail, self.pushes, wall_s, self.sim_time)
 
     def run(self) -> EpisodeResult:
-        spec, sim, settings = self.spec, self.sim, self.settings
-        self.scene = build_scene(spec)
-        sim.build(self.scene)
-        true0 = sim.true_pose()
-        perc, obs0 = perceive_first(sim.render_depth(), settings.contact_spacing_px)
+        spec, sim, settings, phase = self.spec, self.sim, self.settings, self.timer.phase
+        with phase("build"):
+            self.scene = build_scene(spec)
+            sim.build(self.scene)
+            true0 = sim.true_pose()
+            perc, obs0 = perceive_first(sim.render_depth(), settings.contact_spacing_px)
         self.scoring = Scoring.at_first_image(spec, true0, perc.frame_pose)
         self.est = make_estimator(
             perc.region_m,
@@ -112,7 +118,8 @@ class _EpisodeLoop:
         self.frame = perc.frame_pose  # current estimate of the estimator frame's pose in the world
         self.true_prev = true0
         for k in range(settings.n_push):
-            choice = self.est.next_push()
+            with phase("choose"):
+                choice = self.est.next_push()
             if choice is None:
                 if k == 0:
                     return self.failed("no_valid_contact", "no reachable push line cuts the region")
@@ -129,15 +136,35 @@ class _EpisodeLoop:
     def _push(self, k: int, P: np.ndarray, N: np.ndarray) -> EpisodeResult | None:
         """Push `k` through contact P along N (estimator frame), measure the turn, update the
         region and record the push; the failed result if the push failed."""
-        spec, settings = self.spec, self.settings
+        spec = self.spec
         cmd = push_command(spec, self.frame, P, N, self.scene.pusher.radius_m)
-        out, used = self._watched_push(cmd)
+        with self.timer.phase("push"):
+            out, used = self._watched_push(cmd)
         self.sim_time += out.sim_time_s
         if not out.ok:
             return self.failed(out.status.value, f"push {k}: {out.status.value}")
         if not out.contact_made:
             self.details.append(f"push {k}: pusher missed the object")
-        new_frame, true_now, rot, rot_true, recentred = self._measure(k, out, used)
+        with self.timer.phase("measure"):
+            new_frame, true_now, rot, rot_true, recentred = self._measure(k, out, used)
+        with self.timer.phase("estimate"):
+            decision = self._estimate(P, N, cmd, new_frame, rot, recentred)
+        self.frame, self.true_prev = new_frame, true_now
+        record = self.scoring.record(k, P, N, rot, rot_true, decision, self.est.region_px, used)
+        self.pushes.append(record)
+        return None
+
+    def _estimate(
+        self,
+        P: np.ndarray,
+        N: np.ndarray,
+        cmd: PushCommand,
+        new_frame: Pose2D,
+        rot: float,
+        recentred: bool,
+    ) -> str:
+        """The estimator takes the push (its path first, if it reads paths); its decision."""
+        spec, settings = self.spec, self.settings
         line = None
         if settings.method == "magnitude" and settings.mag_floor_model:
             # the robot knows its floor and pusher; the yaw is the estimator's own (vision)
@@ -161,11 +188,7 @@ class _EpisodeLoop:
                     extra={"recentred": True} if recentred else {},
                 )
             )
-        decision = self.est.observe(P, N, rot, line)
-        self.frame, self.true_prev = new_frame, true_now
-        record = self.scoring.record(k, P, N, rot, rot_true, decision, self.est.region_px, used)
-        self.pushes.append(record)
-        return None
+        return self.est.observe(P, N, rot, line)
 
     def _watched_push(self, cmd: PushCommand) -> tuple[PushOutcome, int]:
         """The push, with the tracker following it through camera frames when it watches
@@ -175,10 +198,10 @@ class _EpisodeLoop:
         tracker, settings = self.tracker, self.settings
         self.path.clear()
         if not self.spec.camera_fps > 0:
-            return self.sim.push(cmd), 0
+            return self.push(self.sim, cmd), 0
         if tracker is None:
             if not hasattr(self.est, "observe_path"):
-                return self.sim.push(cmd), 0
+                return self.push(self.sim, cmd), 0
             # the estimator frame moves rigidly with the object: carried by the true pose
             offset = self.true_prev.relative(self.frame)
 
@@ -186,25 +209,27 @@ class _EpisodeLoop:
                 self.path.append((f.t_s, self.sim.true_pose().compose(offset)))
 
             interval_s = 1.0 / self.spec.camera_fps
-            return self.sim.push(cmd, on_frame=on_true_frame, frame_interval_s=interval_s), 0
+            return self.push(self.sim, cmd, on_frame=on_true_frame, frame_interval_s=interval_s), 0
         used = 0
         tracker.begin_push()
 
         def on_frame(f: Frame) -> None:
             nonlocal used
-            img = mask_pusher(f.image, f.pusher_xy_m, f.pusher_radius_m)
-            last = tracker.last
-            try:
-                view = observe_boundary(img, (last.x_m, last.y_m))
-            except PerceptionError:
-                return  # a frame that shows no object is not used
-            tracker.track(view, f.t_s)
+            with self.timer.phase("track"):
+                img = mask_pusher(f.image, f.pusher_xy_m, f.pusher_radius_m)
+                last = tracker.last
+                try:
+                    view = observe_boundary(img, (last.x_m, last.y_m))
+                except PerceptionError:
+                    return  # a frame that shows no object is not used
+                tracker.track(view, f.t_s)
             self.path.append((f.t_s, tracker.last))
             used += 1
 
         # while driving, a frame once the pusher has travelled track_drive_mm since the last
         drive_gap_s = settings.track_drive_mm / 1000.0 / cmd.speed_m_s
-        out = self.sim.push(
+        out = self.push(
+            self.sim,
             cmd,
             on_frame=on_frame,
             frame_interval_s=1.0 / self.spec.camera_fps,

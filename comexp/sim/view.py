@@ -11,7 +11,8 @@ import math
 
 import numpy as np
 
-from comexp.method.scene import CameraModel, ObjectState
+from comexp.method.frames import CameraModel
+from comexp.sim.scene import ObjectState
 
 
 def outline_radius_m(outline_m: np.ndarray) -> float:
@@ -45,7 +46,7 @@ def surely_in_view_box(
     """(x_lo, x_hi, y_lo, y_hi): the floor box where the object frame's origin keeps
     `surely_in_view(x, y, radius_m, camera)` true, `inset_m` inside the box its four
     inequalities bound (the inset is far above their rounding). A backend that runs several
-    of the protocol's chunks in one call (`Simulator._advance_chunks`) stops where the origin
+    of the protocol's chunks in one call (`Simulator.advance_chunks`) stops where the origin
     leaves it, for the protocol's exact check."""
     x0, y0, z0 = camera.position_m
     r = radius_m * (1.0 + 1e-9) + 1e-12

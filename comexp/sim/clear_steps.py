@@ -1,6 +1,6 @@
 """How many of a pusher's next steps stay out of reach of an object at rest, compiled.
 
-The push protocol advances such steps without its checks (`Simulator._steps_still`): each
+The push protocol advances such steps without its checks (`Simulator.steps_still`): each
 check would see the same resting object. planar's compiled contact uses the same closest
 point. Apart from `contact.py`, which the driver imports (a grid's push lines), so that the
 driver loads no Numba.
