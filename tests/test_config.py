@@ -302,38 +302,6 @@ def test_the_user_facing_config_carries_no_test_hooks() -> None:
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-# Defaults the docs quote in prose: (config key, file, pattern whose group 1 is the value).
-# Maintained by hand: a default quoted somewhere new belongs here.
-PROSE_DEFAULTS = [
-    ("workers", "docs/operations.md", r"`workers` actors \(default `(\w+)`"),
-    ("camera.fps", "docs/method.md", r"Default `camera\.fps = ([\d.]+)`"),
-    ("episode.push_length_cm", "docs/method.md", r"`episode\.push_length_cm`, ([\d.]+) cm"),
-    (
-        "episode.recenter_beyond_cm",
-        "docs/method.md",
-        r"`episode\.recenter_beyond_cm` \(config; ([\d.]+) cm\)",
-    ),
-]
-# Keys the knob table (docs/operations.md, "Knobs") must list with their default.
-KNOB_TABLE = ("docs/operations.md", "## Knobs")
-KNOB_TABLE_KEYS = {
-    "backend",
-    "floor",
-    "speed",
-    "pusher.mu",
-    "floor.mu",
-    "grid.coms_per_object",
-    "grid.izz_scales",
-    "episode.push_length_cm",
-    "episode.recenter_beyond_cm",
-    "estimator.theta_T",
-    "estimator.method",
-    "camera.fps",
-    "workers",
-    "ray.address",
-    "db",
-    "seed",
-}
 
 
 def _config_value(cfg, key: str):
@@ -343,69 +311,76 @@ def _config_value(cfg, key: str):
     choices = cfg.hydra.runtime.choices
     if key in choices:
         return choices[key]
-    if "." not in key and key not in cfg:  # a knob named without its node
-        (key,) = [f"{node}.{key}" for node in cfg if OmegaConf.select(cfg, f"{node}.{key}")]
     node = OmegaConf.select(cfg, key, throw_on_missing=True)
     return OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
 
 
-def _knob_table_defaults() -> dict[str, str]:
-    """`| `name`[, `.knob`...] | meaning | `default`[, `default`...] |` rows of the knob table
-    (its section of docs/operations.md, up to the next heading)."""
-    import re
-
-    rel, heading = KNOB_TABLE
-    text = (ROOT / rel).read_text()
-    assert f"\n{heading}\n" in text, f"{rel} has no section {heading!r}"
-    section = text.split(f"\n{heading}\n", 1)[1].split("\n#", 1)[0]
-    out: dict[str, str] = {}
-    for line in section.splitlines():
-        cells = [c.strip() for c in re.split(r"(?<!\\)\|", line)[1:-1]]
-        if len(cells) != 3 or not cells[0].startswith("`"):
-            continue
-        names = re.findall(r"`([\w.]+)`", cells[0])
-        values = re.findall(r"`([^`]*)`", cells[2])
-        if not values:
-            continue  # "all 20": prose, not a value
-        full = [names[0], *(names[0].rpartition(".")[0] + n for n in names[1:])]
-        if len(full) != len(values):
-            continue
-        out.update(zip(full, values, strict=True))
+def _flat_keys(node, prefix: str = "") -> list[str]:
+    """Every leaf key of a config as `--cfg job` prints it (mappings opened, lists kept)."""
+    out = []
+    for k, v in node.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v:
+            out += _flat_keys(v, f"{key}.")
+        else:
+            out.append(key)
     return out
 
 
-def test_documented_defaults_are_the_configs() -> None:
-    """A default the knob table (docs/operations.md) or the docs' prose quotes (e.g.
-    `grid.coms_per_object` 10, `workers` 2, `camera.fps` 30) is the composed config's."""
+def _knobs_block() -> str:
+    """The generated `knobs` block of docs/operations.md."""
+    text = (ROOT / "docs" / "operations.md").read_text()
+    start, end = "<!-- generated: knobs -->\n", "<!-- end generated -->"
+    assert start in text, "docs/operations.md has no generated knob table"
+    return text.split(start, 1)[1].split(end, 1)[0]
+
+
+def test_every_key_comexp_prints_is_documented_with_its_default() -> None:
+    """Every key `comexp --cfg job` prints has its row in docs/operations.md's knob table, with
+    its default and a meaning, and the table is the one the structured config makes now
+    (`python bench/docs_tables.py knobs` after adding or changing a key)."""
+    import json
+    import subprocess
+    import sys
+
+    import yaml
+
+    from comexp.experiment.config import config_keys
+
+    script = Path(sys.executable).with_name("comexp")
+    out = subprocess.run([str(script), "--cfg", "job"], capture_output=True, text=True, check=True)
+    printed = _flat_keys(yaml.safe_load(out.stdout))
+    rows = {}
+    for line in _knobs_block().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
+        if len(cells) == 3 and cells[0].startswith("`"):
+            rows[cells[0].strip("`")] = cells
+    missing = [k for k in printed if k not in rows]
+    assert not missing, f"keys `comexp --cfg job` prints that the docs do not describe: {missing}"
+    cfg = _compose()
+    for key in printed:
+        _, default, meaning = rows[key]
+        assert meaning, f"{key}: no meaning in the knob table"
+        if default != "`(the option's)`":  # backend.*, floor.*: the chosen option's
+            assert json.loads(default.strip("`")) == _config_value(cfg, key), key
+    assert sorted(rows) == sorted(k.key for k in config_keys()), "rerun bench/docs_tables.py"
+
+
+def test_defaults_quoted_in_the_docs_are_the_configs() -> None:
+    """"`key=value` (the default)" / "default `key=value`" anywhere in README and docs/."""
     import re
 
     import yaml
 
     cfg = _compose()
-    documented = _knob_table_defaults()
-    assert set(documented) >= KNOB_TABLE_KEYS, KNOB_TABLE_KEYS - set(documented)
     wrong = []
-    for key, text in sorted(documented.items()):
-        value = _config_value(cfg, key)
-        if yaml.safe_load(text) != value:
-            wrong.append(f"{KNOB_TABLE[0]}: {key} documented {text!r}, config {value!r}")
-    for key, rel, pattern in PROSE_DEFAULTS:
-        m = re.search(pattern, (ROOT / rel).read_text())
-        assert m, f"{rel}: the default of {key} is no longer quoted as {pattern!r}"
-        if yaml.safe_load(m.group(1)) != _config_value(cfg, key):
-            wrong.append(
-                f"{rel}: {key} documented {m.group(1)!r}, config {_config_value(cfg, key)!r}"
-            )
-    # "`key=value` (the default)" / "default `key=value`" anywhere in the docs
     forms = (r"`([\w.]+)=([^`]+)` \(the default\)", r"default `([\w.]+)=([^`]+)`")
     for doc in DOC_FILES:
         for form in forms:
             for m in re.finditer(form, doc.read_text()):
                 value = _config_value(cfg, m.group(1))
                 if yaml.safe_load(m.group(2)) != value:
-                    wrong.append(
-                        f"{doc.name}: {m.group(1)} documented {m.group(2)!r}, config {value!r}"
-                    )
+                    wrong.append(f"{doc.name}: {m.group(1)} documented {m.group(2)!r}, {value!r}")
     assert not wrong, "\n".join(wrong)
 
 

@@ -57,6 +57,7 @@ PUSH_COLUMNS = [
     "decision",
     "region_px",
     "n_frames",
+    "region_cm",
 ]
 SQUARE = ((-3.0, -3.0), (3.0, -3.0), (3.0, 3.0), (-3.0, 3.0))
 

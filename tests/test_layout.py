@@ -209,11 +209,18 @@ def test_no_patching_of_third_party_internals():
     `module.attr = ...` on an imported third-party module, no `ray._private`/`ray._raylet`, no
     replaced logging record factory."""
     bad = []
-    for _mod, path in MODULES.items():
-        text = path.read_text()
-        for needle in ("ray._private", "ray._raylet", "setLogRecordFactory"):
-            if needle in text:
-                bad.append(f"{path.relative_to(ROOT)}: {needle}")
+    for path in MODULES.values():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            elif isinstance(node, ast.Attribute):
+                names = [ast.unparse(node)]
+            for name in names:
+                if name.startswith(("ray._private", "ray._raylet")) or "RecordFactory" in name:
+                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {name}")
     assert not bad, bad
 
 

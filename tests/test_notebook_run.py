@@ -163,7 +163,7 @@ def test_a_rerun_returns_the_stored_rows_without_running(runs: dict, monkeypatch
     [
         (["backend=planar", "workers=0"], "workers must be a count >= 1 or auto, got 0"),
         (["backend=nope"], "unknown backend 'nope' (choose one of: mujoco, planar, pybullet)"),
-        (["nokey=1"], "nokey: Key 'nokey' not in 'ExperimentConfig'"),
+        (["nokey=1"], "nokey: no such key; the config has: backend, camera, db"),
         (["speed=40,4"], "comexp.run runs one job; call it once per value of: ['speed=40,4']"),
         (["-m", "speed=4"], "comexp.run takes overrides only"),
     ],

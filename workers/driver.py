@@ -5,6 +5,7 @@ otherwise; `COMEXP_PROGRESS=bar` or `log` chooses)."""
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 import os
@@ -12,6 +13,9 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from comexp.episode.task import EpisodeResult, EpisodeSpec
 
@@ -28,6 +32,7 @@ class RunStats:
     stored: int = 0
     wall_s: float = 0.0
     failures: collections.Counter[str] = field(default_factory=collections.Counter)
+    first_failure: EpisodeResult | None = None  # the first failed result that came back
 
 
 PROGRESS_ENV = "COMEXP_PROGRESS"
@@ -54,8 +59,6 @@ class Progress:
         self._last = self.t0
         self._bar = None
         if tty if tty is not None else _bar_wanted():
-            from tqdm import tqdm
-
             self._bar = tqdm(total=total, desc=desc, unit="ep", dynamic_ncols=True, smoothing=0.1)
 
     def update(self, n: int, stats: RunStats) -> None:
@@ -81,6 +84,13 @@ class Progress:
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
+
+    def log_lines(self) -> contextlib.AbstractContextManager[None]:
+        """While the bar is drawn, log lines are printed above it (tqdm's redirect of the
+        console handlers), not over its line."""
+        if self._bar is None:
+            return contextlib.nullcontext()
+        return logging_redirect_tqdm()
 
 
 def run_and_store(
@@ -109,18 +119,25 @@ def run_and_store(
         pending = []
         last_flush = time.monotonic()
 
+    def take(results: list[EpisodeResult]) -> None:
+        pending.extend(results)
+        stats.done += len(results)
+        for r in results:
+            if r.status != "ok":
+                stats.failed += 1
+                stats.failures[r.failure or "unknown"] += 1
+                if stats.first_failure is None:
+                    stats.first_failure = r
+        if progress is not None:
+            progress.update(len(results), stats)
+        if len(pending) >= flush_every or time.monotonic() - last_flush >= flush_interval_s:
+            flush()
+
+    lines = progress.log_lines() if progress is not None else contextlib.nullcontext()
     try:
-        for results in pool.run(specs):
-            pending.extend(results)
-            stats.done += len(results)
-            for r in results:
-                if r.status != "ok":
-                    stats.failed += 1
-                    stats.failures[r.failure or "unknown"] += 1
-            if progress is not None:
-                progress.update(len(results), stats)
-            if len(pending) >= flush_every or time.monotonic() - last_flush >= flush_interval_s:
-                flush()
+        with lines:
+            for results in pool.run(specs):
+                take(results)
     finally:
         try:
             flush()

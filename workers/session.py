@@ -195,10 +195,25 @@ def _in_memory_auth_token() -> None:
     """Token auth for a local Ray with a token that lives only in the environment (inherited
     by Ray's processes): Ray turns token auth on for a new local Ray by itself and, without a
     token in `RAY_AUTH_TOKEN` (its documented first source), writes one to ~/.ray/auth_token.
-    A user's own RAY_AUTH_* settings win."""
+    A user's own RAY_AUTH_* settings win. Ray's warning that it turned token auth on is
+    dropped (`_TokenAuthNotice`): this is the auth comexp asked for."""
     if any(os.environ.get(k) for k in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")):
         return
     os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
+    notice = logging.getLogger(_TOKEN_AUTH_LOGGER)
+    if not any(isinstance(f, _TokenAuthNotice) for f in notice.filters):
+        notice.addFilter(_TokenAuthNotice())
+
+
+# the logger of Ray's "Token authentication is enabled for this Ray cluster" warning
+_TOKEN_AUTH_LOGGER = "ray._private.authentication.authentication_token_setup"
+
+
+class _TokenAuthNotice(logging.Filter):
+    """Drops Ray's warning that it enabled token auth (comexp enabled it on purpose)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Token authentication is enabled for this Ray cluster" not in record.getMessage()
 
 
 def shutdown_ray() -> None:

@@ -6,7 +6,7 @@ read them: each default is written here once.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 AUTO = "auto"
@@ -17,8 +17,13 @@ DEFAULT_LOCAL_WORKERS = 2
 class RaySettings:
     """Where the workers run (the `ray` config node)."""
 
-    address: str | None = None  # None: start a local Ray; "auto" or host:port: join a cluster
-    log_to_driver: bool = False  # worker stdout/stderr on the terminal (engines are chatty)
+    address: str | None = field(
+        default=None,
+        metadata={"help": "null: start a local Ray; auto or HOST:PORT: join that Ray cluster"},
+    )
+    log_to_driver: bool = field(
+        default=False, metadata={"help": "workers' stdout/stderr on the terminal (chatty)"}
+    )
 
 
 def check_workers(workers: Any) -> int | str | None:
@@ -42,9 +47,17 @@ def check_workers(workers: Any) -> int | str | None:
 class PoolSettings:
     """How episodes are run (the `execution` config node)."""
 
-    batch_size: int = 8  # episodes per Ray task: ~0.5 ms overhead vs ~100 ms per episode
-    max_retries: int = 2  # a batch whose worker dies is retried this often, then split
-    restart_timeout_s: float = 60.0  # a replacement worker not up by then is dropped
-    # An episode still running after this is failed with `failure="timeout"` and its worker
-    # carries on (episodes take ~0.1-0.3 s; quasi-static ones a few s): catches hangs only.
-    episode_timeout_s: float = 120.0
+    batch_size: int = field(
+        default=8, metadata={"help": "episodes per Ray task (a dying worker costs one batch)"}
+    )
+    max_retries: int = field(
+        default=2, metadata={"help": "a batch whose worker dies is retried this often, then split"}
+    )
+    restart_timeout_s: float = field(
+        default=60.0, metadata={"help": "a replacement worker not up by then is dropped (s)"}
+    )
+    # episodes take ~0.1-0.3 s, quasi-static ones a few s: the limit catches hangs only
+    episode_timeout_s: float = field(
+        default=120.0,
+        metadata={"help": "an episode still running after this (s) fails with timeout"},
+    )

@@ -16,6 +16,7 @@ import io
 import json
 import math
 import os
+import re
 import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
@@ -67,6 +68,9 @@ class _Parser(argparse.ArgumentParser):
     """argparse that reports a bad command line in one line (no usage dump)."""
 
     def error(self, message: str) -> NoReturn:
+        late = re.search(r"unrecognized arguments: .*?(--db)\b", message)
+        if late:  # `comexp-db summary --db X`: the option belongs to comexp-db itself
+            message = f"--db goes before the command: {self.prog.split()[0]} --db DB COMMAND ..."
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
@@ -263,6 +267,12 @@ def _rows_out(rows: Sequence[dict[str, Any]], columns: Sequence[str], fmt: str) 
     return markdown_table(columns, [[fmt_value(r[c]) for c in columns] for r in rows]) + "\n"
 
 
+def _first_line(text: str | None, width: int = 120) -> str:
+    """A failure's detail in a table cell: its first line, cut at `width`."""
+    line = (text or "").strip().splitlines()[0] if (text or "").strip() else ""
+    return line if len(line) <= width else line[: width - 3] + "..."
+
+
 def _episode_columns(spec: str | None) -> list[str]:
     if spec is None:
         return list(EPISODE_DEFAULT_COLUMNS)
@@ -327,7 +337,12 @@ def _run(args: argparse.Namespace, out: Any) -> None:
                 out.write(claims_markdown(rows, seed=args.seed))
         elif args.command == "episodes":
             cols = _episode_columns(args.columns)
-            rows = db.episodes(flt, columns=cols, limit=args.limit)
+            fetch = list(dict.fromkeys([*cols, "status", "detail"]))
+            rows = db.episodes(flt, columns=fetch, limit=args.limit)
+            if args.columns is None and any(r["status"] == "failed" for r in rows):
+                cols = [*cols, "detail"]  # why they failed, by default where some did
+                for r in rows:
+                    r["detail"] = _first_line(r["detail"]) if r["status"] == "failed" else ""
             out.write(_rows_out(rows, cols, args.format))
         elif args.command == "plot":
             # on first use: matplotlib adds ~0.3 s to the start-up of every comexp-db command
@@ -395,7 +410,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except (CliError, ValueError, OSError, SQLAlchemyError) as exc:
         text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
-        print(f"comexp-db: error: {text[0] if text else type(exc).__name__}", file=sys.stderr)
+        line = text[0] if text else type(exc).__name__
+        if line == "file is not a database":  # SQLite's words: say which file, and what
+            line = f"{args.db}: not a comexp results database (SQLite: file is not a database)"
+        print(f"comexp-db: error: {line}", file=sys.stderr)
         return 1
     except Exception as exc:  # a bug: still one line; COMEXP_DEBUG=1 shows the traceback
         if os.environ.get("COMEXP_DEBUG") == "1":

@@ -206,6 +206,7 @@ class ShowJobs:
 
 
 _show_jobs: ShowJobs | None = None  # set by `main` for `--cfg` with `-m`
+_all_failed: list[str] = []  # the jobs of this command whose every episode failed
 
 
 # --- one job ---------------------------------------------------------------------------------
@@ -238,12 +239,15 @@ def _app(cfg: DictConfig) -> JobResult:
     try:
         job = prepare_job(cfg)
         _scrub_hydra_files(job.cfg.db)
-        return run_job(
+        result = run_job(
             job,
             output_dir=HydraConfig.get().runtime.output_dir,
             command_line=shlex.join(["comexp", *sys.argv[1:]]),
             config_yaml=job_config_yaml(cfg),
         )
+        if result.all_failed:  # the command exits non-zero once every job has run
+            _all_failed.append(f"{result.label}: every episode failed ({result.first_failure})")
+        return result
     except ConfigError as e:
         raise Abort(str(e), EXIT_BAD_INPUT) from None
     except (PoolError, SessionError) as e:
@@ -300,6 +304,7 @@ def main() -> None:
     show = ShowJobs.split(sys.argv[1:])
     if show is not None:
         _show_jobs, sys.argv[1:] = show
+    _all_failed.clear()
     try:
         _run_app()
     except Abort as e:
@@ -320,6 +325,8 @@ def main() -> None:
         if user_full or not str(e).startswith(_HYDRA_USAGE_ERRORS):
             raise
         _die(str(e).splitlines()[0], EXIT_BAD_INPUT)
+    if _all_failed:
+        _die("; ".join(_all_failed), EXIT_FAILED)
 
 
 _HYDRA_USAGE_ERRORS = ("Only one of --run, --multirun", "The --resolve flag can only be used")

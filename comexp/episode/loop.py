@@ -50,6 +50,9 @@ def needs_recentering(pose: Pose2D, recenter_beyond_cm: float) -> bool:
     return recenter_beyond_cm > 0 and math.hypot(pose.x_m, pose.y_m) * 100.0 > recenter_beyond_cm
 
 
+# an estimator's label of a push (`observe`'s return): the `pushes.decision` column's width
+DECISION_MAX_CHARS = 16
+
 # a push protocol: `comexp.sim.protocol.push`, or a test's ideal kinematics in its place
 PushFn = Callable[..., PushOutcome]
 
@@ -150,7 +153,10 @@ class _EpisodeLoop:
         with self.timer.phase("estimate"):
             decision = self._estimate(P, N, cmd, new_frame, rot, recentred)
         self.frame, self.true_prev = new_frame, true_now
-        record = self.scoring.record(k, P, N, rot, rot_true, decision, self.est.region_px, used)
+        region = getattr(self.est, "region_m", None)  # an estimator that shows its region
+        record = self.scoring.record(
+            k, P, N, rot, rot_true, decision, self.est.region_px, used, region
+        )
         self.pushes.append(record)
         return None
 
@@ -188,7 +194,14 @@ class _EpisodeLoop:
                     extra={"recentred": True} if recentred else {},
                 )
             )
-        return self.est.observe(P, N, rot, line)
+        decision = self.est.observe(P, N, rot, line)
+        if not isinstance(decision, str) or not 0 < len(decision) <= DECISION_MAX_CHARS:
+            raise TypeError(
+                f"{type(self.est).__name__}.observe must return a label of 1-"
+                f"{DECISION_MAX_CHARS} characters (stored as the push's decision), "
+                f"got {decision!r}"
+            )
+        return decision
 
     def _watched_push(self, cmd: PushCommand) -> tuple[PushOutcome, int]:
         """The push, with the tracker following it through camera frames when it watches

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from comexp.method.estimator import EstimatorSettings
@@ -29,9 +30,14 @@ class EpisodeSettings:
     """The push protocol of every episode (the `episode` config node; docs/method.md,
     "Episode runner"): the one place its defaults are written."""
 
-    push_length_cm: float = 3.0  # how far the pusher goes past the contact point (paper: 3 cm)
-    recenter_beyond_cm: float = 10.0  # put the object back at the centre beyond this; 0: never
-    mass_kg: float = 0.2  # the object's mass (paper: 0.2 kg)
+    push_length_cm: float = field(
+        default=3.0, metadata={"help": "how far the pusher goes past the contact (paper: 3 cm)"}
+    )
+    recenter_beyond_cm: float = field(
+        default=10.0,
+        metadata={"help": "put the object back at the floor's centre beyond this; 0: never"},
+    )
+    mass_kg: float = field(default=0.2, metadata={"help": "the object's mass (paper: 0.2 kg)"})
 
 
 @dataclass
@@ -42,10 +48,17 @@ class CameraSettings:
     measured rate that unwraps every rotation of the study (docs/method.md, "Tracking during
     the push")."""
 
-    fps: float = 30.0
-    # how the engines make depth images: raycast (the exact ray cast of the prism at the
-    # engine's pose, planar's camera) | engine (the engine's own renderer); docs/method.md
-    renderer: str = "raycast"
+    fps: float = field(
+        default=30.0,
+        metadata={"help": "tracking frames per second during a push; 0: before and after only"},
+    )
+    renderer: str = field(
+        default="raycast",
+        metadata={
+            "help": "engines' depth images: raycast (the exact ray cast of the prism, planar's "
+            "camera) | engine (the engine's own renderer)"
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -110,6 +123,9 @@ class PushRecord:
     decision: str
     region_px: int  # region size after the update
     n_frames: int = 0  # tracking frames the rotation was measured through (0: before/after)
+    # the convex hull of the region the estimator kept after the update (object frame, cm;
+    # `comexp-db show` draws it); None from an estimator that does not show its region
+    region_cm: tuple[tuple[float, float], ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -219,8 +235,10 @@ class Scoring:
         decision: str,
         region_px: int,
         n_frames: int,
+        region_m: np.ndarray | None = None,
     ) -> PushRecord:
-        """Push `k` (contact and normal in the estimator frame) as the database stores it."""
+        """Push `k` (contact and normal in the estimator frame) as the database stores it;
+        `region_m`: the points the estimator kept (its frame), stored as their hull."""
         c_obj = self.frame_in_obj.to_world(contact_m)
         d_obj = _rotate(normal, self.frame_in_obj.yaw_rad)
         return PushRecord(
@@ -234,7 +252,18 @@ class Scoring:
             decision=decision,
             region_px=region_px,
             n_frames=n_frames,
+            region_cm=None if region_m is None else self._hull_cm(region_m),
         )
+
+    def _hull_cm(self, region_m: np.ndarray) -> tuple[tuple[float, float], ...]:
+        """The convex hull of region points (estimator frame, m) in the object frame, cm,
+        rounded to 1 um (a few vertices for hundreds of points)."""
+        pts = np.asarray(region_m, dtype=np.float64).reshape(-1, 2)
+        if len(pts) > 2:
+            hull = cv2.convexHull(pts.astype(np.float32), returnPoints=False).ravel()
+            pts = pts[np.sort(hull)]
+        obj = self.frame_in_obj.to_world(pts) * 100.0
+        return tuple((round(float(x), 4), round(float(y), 4)) for x, y in obj)
 
     def result(
         self,

@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import re
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -62,22 +63,35 @@ class ConfigError(ValueError):
 # --- schema -------------------------------------------------------------------------------
 
 
+def knob(default: Any = MISSING, help: str = "", **kw: Any) -> Any:  # noqa: A002 - the key's help
+    """A config key: its default and what it means (`help`: the one description of the key,
+    which `comexp-db knobs` and docs/operations.md's table show)."""
+    if callable(default):
+        return field(default_factory=default, metadata={"help": help}, **kw)
+    return field(default=default, metadata={"help": help}, **kw)
+
+
 @dataclass
 class BackendConfig:
     """The `backend` group's option (conf/backend/NAME.yaml; default: conf/config.yaml's
     defaults list)."""
 
-    name: str = MISSING  # the backend's name in the database and the reports
-    _target_: str = MISSING  # its simulator class, module.Class (a `Simulator` subclass)
-    # a 3-D engine: it takes `floor_friction` and draws its images with `camera.renderer`
-    engine: bool = False
-    # engines: "model" = the shared footprint friction model applied as a force each step
-    # (the engine's own object-floor friction off); "native" = the engine's own friction
-    floor_friction: str = "model"
-    # what only Linux has, when the backend needs it (refused elsewhere in one line)
-    linux_only: str | None = None
-    # the simulator class's own keyword arguments (a plug-in's: part of its physics identity)
-    options: dict[str, Any] = field(default_factory=dict)
+    name: str = knob(help="the backend's name in the database and the reports")
+    _target_: str = knob(help="its simulator class, module.Class (a Simulator subclass)")
+    engine: bool = knob(
+        False, "a 3-D engine: takes backend.floor_friction and draws with camera.renderer"
+    )
+    floor_friction: str = knob(
+        "model",
+        "engines: model (the shared footprint friction applied each step, the engine's own "
+        "floor friction off) | native (the engine's own contact friction)",
+    )
+    linux_only: str | None = knob(
+        None, "what only Linux has, when the backend needs it (refused elsewhere in one line)"
+    )
+    options: dict[str, Any] = knob(
+        dict, "the simulator class's own keyword arguments (part of its physics identity)"
+    )
 
 
 @dataclass
@@ -90,22 +104,30 @@ class FloorConfig:
     runs one).
     """
 
-    name: str = MISSING  # iso | aniso
-    mu: list[float] = MISSING
-    orientations: list[str] | None = None
+    name: str = knob(help="iso | aniso (the floor group's option)")
+    mu: list[float] = knob(
+        help="iso: one floor per value; aniso: [mu_a, mu_b] along the floor's two axes"
+    )
+    orientations: list[str] | None = knob(
+        None, "aniso: xy -> (mu_x, mu_y) = (mu_a, mu_b), yx -> swapped; one floor each"
+    )
 
 
 @dataclass
 class PusherConfig:
-    mu: list[float] = field(default_factory=lambda: [0.1, 1.0])
+    mu: list[float] = knob(lambda: [0.1, 1.0], "pusher-object friction, one condition per value")
 
 
 @dataclass
 class GridConfig:
-    objects: list[str] | None = None  # None: every config in the `object` group
-    coms_per_object: int = 10
-    izz_scales: list[float] = field(default_factory=lambda: [1.0, 10.0])
-    com_margin_cm: float = 1.0  # sampled CoMs keep this distance from the outline
+    objects: list[str] | None = knob(
+        None, "object names (object/NAME.yaml); null: every object of the object group"
+    )
+    coms_per_object: int = knob(10, "CoMs per object, the same ones for every condition")
+    izz_scales: list[float] = knob(
+        lambda: [1.0, 10.0], "Izz multipliers of the uniform-density value, one per condition"
+    )
+    com_margin_cm: float = knob(1.0, "sampled CoMs keep this distance (cm) from the outline")
 
 
 # the `estimator` node's types for the settings' (OmegaConf has lists, not tuples)
@@ -129,14 +151,17 @@ def _estimator_node() -> type:
     for f in dataclasses.fields(EstimatorSettings):
         default = f.default
         if isinstance(default, tuple):
-            spec = field(default_factory=lambda d=default: list(d))
+            spec = field(default_factory=lambda d=default: list(d), metadata=f.metadata)
         else:
-            spec = field(default=default)
+            spec = field(default=default, metadata=f.metadata)
         fields.append((_knob(f), _NODE_TYPES[str(f.type)], spec))
     return dataclasses.make_dataclass("EstimatorConfig", fields)
 
 
 EstimatorConfig = _estimator_node()
+
+
+RETRY_CHOICES = ("failed",)
 
 
 @dataclass
@@ -145,19 +170,55 @@ class ExperimentConfig:
 
     backend: BackendConfig = MISSING
     floor: FloorConfig = MISSING
-    speed: float = 40.0  # cm/s
+    speed: float = knob(40.0, "push speed, cm/s (the paper: 40 dynamic, 4 quasi-static)")
     pusher: PusherConfig = field(default_factory=PusherConfig)
     grid: GridConfig = field(default_factory=GridConfig)
     episode: EpisodeSettings = field(default_factory=EpisodeSettings)
     estimator: Any = field(default_factory=EstimatorConfig)
     camera: CameraSettings = field(default_factory=CameraSettings)
-    # a count, `auto` (every CPU of the Ray cluster, or of this machine for a local Ray), or
-    # null: 2 on a local Ray, `auto` when the job joins a cluster (`ray.address` set)
-    workers: Any = None
+    workers: Any = knob(
+        None,
+        "workers (one CPU each): a count, auto (every CPU of the Ray cluster, or of this "
+        "machine) or null (2 on a local Ray, auto on a cluster)",
+    )
     ray: RaySettings = field(default_factory=RaySettings)
     execution: PoolSettings = field(default_factory=PoolSettings)
-    db: str = "results/comexp.db"  # SQLAlchemy URL or file path (relative to the current dir)
-    seed: int = 0
+    db: str = knob(
+        "results/comexp.db", "the results database: SQLAlchemy URL or file path (from cwd)"
+    )
+    seed: int = knob(0, "fixes every random choice: CoMs, initial yaws")
+    retry: str | None = knob(
+        None, "failed: rerun the job's stored failed episodes, each replaced by its new result"
+    )
+
+
+@dataclass(frozen=True)
+class ConfigKey:
+    """One key of the job's config, as `comexp --cfg job` prints it."""
+
+    key: str  # dotted, e.g. grid.coms_per_object
+    default: Any  # MISSING for a group's own keys (backend.*, floor.*: set by the option)
+    help: str
+
+
+def config_keys(node: type = ExperimentConfig, prefix: str = "") -> list[ConfigKey]:
+    """Every key of the schema, in `--cfg job` order, with its default and meaning: the one
+    source of the knob table (docs/operations.md, `bench/docs_tables.py knobs`)."""
+    out = []
+    for f in dataclasses.fields(node):
+        key = f"{prefix}{f.name}"
+        factory = f.default_factory
+        sub = f.type if dataclasses.is_dataclass(f.type) else None
+        if sub is None and factory is not dataclasses.MISSING and dataclasses.is_dataclass(factory):
+            sub = factory
+        if sub is None and isinstance(f.type, str) and f.type in _SCHEMA_NODES:
+            sub = _SCHEMA_NODES[f.type]
+        if sub is not None:
+            out += config_keys(sub, f"{key}.")
+            continue
+        default = f.default if factory is dataclasses.MISSING else factory()
+        out.append(ConfigKey(key, default, f.metadata.get("help", "")))
+    return out
 
 
 def register_configs() -> None:
@@ -167,6 +228,13 @@ def register_configs() -> None:
 
 
 register_configs()
+
+# the schema's nested nodes by their annotation (the module's annotations are strings)
+_SCHEMA_NODES: dict[str, type] = {
+    c.__name__: c
+    for c in (BackendConfig, FloorConfig, PusherConfig, GridConfig, EpisodeSettings)
+    + (CameraSettings, RaySettings, PoolSettings)
+}
 
 
 # --- backends by name ----------------------------------------------------------------------
@@ -215,11 +283,43 @@ def hydra_error_line(e: BaseException) -> str:
         key = getattr(err, "full_key", None)
         msg = getattr(err, "msg", None)
         if key and msg:
-            return f"{key}: {str(msg).splitlines()[0]}"
+            return f"{key}: {_in_user_words(str(key), str(msg).splitlines()[0])}"
     text = [t.strip() for t in str(e).splitlines() if t.strip()]
     if cause is not None and (not text or text[-1].endswith(":")):
         text += [t.strip() for t in str(cause).splitlines() if t.strip()][:1]
     return " ".join(text[:2]) if text else type(e).__name__
+
+
+_KINDS = {"Float": "a number", "Integer": "a whole number", "Boolean": "true or false"}
+
+
+def _in_user_words(key: str, msg: str) -> str:
+    """OmegaConf's message about the key the user typed, in the user's words."""
+    unknown = re.match(r"Key '([^']+)' not in '(\w+)'", msg)
+    if unknown:
+        return f"no such key; {_siblings(key)}"
+    if "is not a ListConfig" in msg:
+        return f"expects a list, e.g. {key}=[a,b]"
+    if "is not a DictConfig" in msg or "is not a dict" in msg:
+        return "expects a mapping of keys, not a value"
+    convert = re.match(r"Value '(.*)' of type '\w+' could not be converted to (\w+)", msg)
+    if convert:
+        kind = _KINDS.get(convert[2], convert[2].lower())
+        return f"expects {kind}, got {convert[1]!r}"
+    return msg
+
+
+def _siblings(key: str) -> str:
+    """The keys beside `key` (e.g. grid.objectz: grid's keys), to say what is there."""
+    parent = key.rpartition(".")[0]
+    names = sorted(
+        {
+            k.key[len(parent) + 1 :].split(".")[0] if parent else k.key.split(".")[0]
+            for k in config_keys()
+            if not parent or k.key.startswith(parent + ".")
+        }
+    )
+    return f"{parent or 'the config'} has: {', '.join(names)}"
 
 
 # --- conversion and validation ------------------------------------------------------------
@@ -252,6 +352,9 @@ def to_experiment(cfg: DictConfig) -> ExperimentConfig:
         raise ConfigError(f"{key}: {msg}" if key else msg) from None
     if not isinstance(obj, ExperimentConfig):
         raise ConfigError("the primary config must be based on the comexp schema")
+    extra = sorted(set(job) - {f.name for f in dataclasses.fields(ExperimentConfig)})
+    if extra:  # `+key=value` adds a key the schema does not have: nothing would read it
+        raise ConfigError(f"{extra[0]}: no such key; {_siblings(extra[0])}")
     return obj
 
 
@@ -302,6 +405,10 @@ def validate(cfg: ExperimentConfig) -> EstimatorSettings:
         raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
     if not cfg.db.strip():
         raise ConfigError("db must be a database URL or a file path")
+    if cfg.retry is not None and cfg.retry not in RETRY_CHOICES:
+        raise ConfigError(
+            f"retry must be {' or '.join(RETRY_CHOICES)} (or unset), got {cfg.retry!r}"
+        )
     return _validate_estimator(cfg.estimator)
 
 

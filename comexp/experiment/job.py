@@ -28,7 +28,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from comexp.episode.task import EpisodeSpec
+from comexp.episode.task import EpisodeResult, EpisodeSpec
 from comexp.experiment.config import ConfigError, ExperimentConfig, PreparedJob
 from comexp.experiment.grid import expand_grid
 from comexp.results.identity import episode_key
@@ -73,11 +73,17 @@ class JobResult:
     failed: int = 0
     stored: int = 0
     failures: collections.Counter[str] = field(default_factory=collections.Counter)
+    first_failure: str = ""  # the first failed episode, in one line (what and why)
     reports: list[Path] = field(default_factory=list)
 
     @property
     def episodes(self) -> int:
         return len(self.keys)
+
+    @property
+    def all_failed(self) -> bool:
+        """Episodes ran and none of them finished: a job to fix, not to report."""
+        return self.ran > 0 and self.failed == self.ran
 
 
 def job_label(exp: ExperimentConfig) -> str:
@@ -133,14 +139,16 @@ def run_job(
     try:
         keys = [episode_key(s) for s in specs]
         stored = db.stored_keys(keys)
-        todo = [s for s, k in zip(specs, keys, strict=True) if k not in stored]
+        retried = db.failed_keys(keys) if exp.retry == "failed" else set()
+        todo = [s for s, k in zip(specs, keys, strict=True) if k not in stored or k in retried]
         result = JobResult(label, exp.db, keys, skipped=len(specs) - len(todo))
         log.info(
-            "%s: %d episodes, %d already stored, %d to run (db %s)",
+            "%s: %d episodes, %d already stored, %d to run%s (db %s)",
             label,
             len(specs),
-            result.skipped,
+            len(stored),
             len(todo),
+            f" ({len(retried)} failed, retried)" if retried else "",
             redact_url(exp.db),
         )
         if todo:
@@ -149,10 +157,13 @@ def run_job(
                 "config_yaml": redact(config_yaml, exp.db),
                 "job_name": Path(output_dir).name,  # ties the sweep to its folder
             }
-            _run_todo(job, db, todo, result, provenance, progress_bar)
+            _run_todo(job, db, todo, result, provenance, progress_bar, replace=bool(retried))
         else:
-            print(f"{label}: all {len(specs)} episodes already stored")
-        paths, text = write_job_reports(db, output_dir, keys, job=label)
+            failed = len(db.failed_keys(keys))
+            hint = f" ({failed} failed: retry=failed reruns them)" if failed else ""
+            print(f"{label}: all {len(specs)} episodes already stored{hint}")
+        # a job that ran nothing has nothing new to report: no new report files
+        paths, text = write_job_reports(db, output_dir, keys, job=label, files=bool(todo))
         if text:
             print(text)
         if paths:
@@ -170,6 +181,8 @@ def _run_todo(
     result: JobResult,
     provenance: dict[str, str],
     progress_bar: bool | None,
+    *,
+    replace: bool = False,
 ) -> None:
     """Run `todo` on a pool of `workers` and store the results under a new sweep; the kernels
     (a local job's workers then load them) beside Ray's start."""
@@ -191,7 +204,9 @@ def _run_todo(
         stats = run_and_store(
             pool,
             todo,
-            lambda rs: db.add_results(sweep_id, rs),
+            (lambda rs: db.replace_failed(sweep_id, rs))
+            if replace
+            else (lambda rs: db.add_results(sweep_id, rs)),
             progress=Progress(len(todo), desc=result.label, tty=progress_bar),
         )
     except BaseException:
@@ -205,6 +220,20 @@ def _run_todo(
         f"({stats.failed} failed{': ' + failures if failures else ''}), "
         f"stored {stats.stored}"
     )
+    if stats.first_failure is not None:
+        result.first_failure = failure_line(stats.first_failure)
+        print(f"first failure: {result.first_failure}")
+
+
+def failure_line(r: EpisodeResult) -> str:
+    """A failed episode in one line: which episode, its failure kind and its message's last
+    line (an exception's own message ends a traceback)."""
+    lines = [ln.strip() for ln in (r.detail or "").strip().splitlines() if ln.strip()]
+    message = next((ln for ln in reversed(lines) if not ln.startswith(("File ", "^"))), "")
+    if lines and lines[0] and not lines[0].startswith("Traceback"):
+        message = lines[0]
+    s = r.spec
+    return f"{s.object} com {s.com_index}: {r.failure}" + (f" ({message[:200]})" if message else "")
 
 
 def versions() -> dict[str, str]:

@@ -7,9 +7,9 @@ Loading: `load_objects(names, sources)` reads `object/<name>.yaml` from a job's 
 entries), the first source that has the file winning as in Hydra's search path; without
 `sources`, from the package's `conf/` alone (the built-in objects: tests, bench).
 
-Object frame: the footprint is re-centred on its area centroid (as `geometry.prism_object`
-does) and put in counter-clockwise order; x/y keep the axes of the config file. Every CoM the
-study samples, stores and estimates is in this frame, in cm.
+Object frame: the footprint is re-centred on its area centroid (as
+`comexp.sim.bodies.prism_object` does) and put in counter-clockwise order; x/y keep the axes of
+the config file. Every CoM the study samples, stores and estimates is in this frame, in cm.
 
 CoM rule: the k-th CoM of an object depends only on (object name, k, base_seed), so every
 condition (speed, friction, Izz, backend) sees the very same CoMs and asking for 3 CoMs gives
@@ -51,7 +51,8 @@ _KEYS = {"name", "outline_cm", "height_cm", "description"}
 @dataclass(frozen=True)
 class ObjectDef:
     """An object as the experiment layer sees it: footprint (cm, CCW, origin at its area
-    centroid) and height (cm). Construct through `from_mapping`/`load`, which validate."""
+    centroid) and height (cm). Construct through `from_mapping` (or `load_objects`), which
+    validate."""
 
     name: str
     outline_cm: tuple[tuple[float, float], ...]

@@ -73,43 +73,99 @@ class EstimatorSettings:
     paper names it where a field's metadata gives `knob` (units dropped: `estimator.theta_T`
     is `theta_T_deg`); the field names are the stored episodes' (their identity)."""
 
-    w: tuple[float, float] = (1.0, 0.5)
-    theta_T_deg: float = field(default=1.0, metadata={"knob": "theta_T"})
-    C_bw_px: float = field(default=10.0, metadata={"knob": "C_bw"})
-    n_push: int = 5
-    rotation_source: str = "vision"  # vision | oracle
+    w: tuple[float, float] = field(
+        default=(1.0, 0.5), metadata={"help": "score weights [w1, w2] of d and cos (Eq. 1)"}
+    )
+    theta_T_deg: float = field(
+        default=1.0,
+        metadata={"knob": "theta_T", "help": "turns below this (deg) are the band (Alg. 2)"},
+    )
+    C_bw_px: float = field(
+        default=10.0, metadata={"knob": "C_bw", "help": "the band's half width, px (Alg. 2)"}
+    )
+    n_push: int = field(default=5, metadata={"help": "pushes per episode"})
+    rotation_source: str = field(
+        default="vision",
+        metadata={"help": "vision (the tracked images) | oracle (the true pose: evaluation)"},
+    )
     # vision with frames: a frame is tracked when the predicted turn since the last one
     # reaches track_step_deg, or track_gap_s after it at the latest, and while the pusher
     # drives once it has travelled track_drive_mm since (every frame at 40 cm/s, every third
-    # at 4 cm/s; `PoseTracker.wants_frame`); track_step_deg = 0: every camera frame;
-    # track_drive_mm = 0: every frame while the pusher drives
-    track_step_deg: float = field(default=10.0, metadata={"knob": "track_step"})
-    track_gap_s: float = field(default=0.1, metadata={"knob": "track_gap"})
-    track_drive_mm: float = field(default=4.0, metadata={"knob": "track_drive"})
+    # at 4 cm/s; `PoseTracker.wants_frame`)
+    track_step_deg: float = field(
+        default=10.0,
+        metadata={
+            "knob": "track_step",
+            "help": "track a frame once the predicted turn reaches this (deg); 0: every frame",
+        },
+    )
+    track_gap_s: float = field(
+        default=0.1,
+        metadata={"knob": "track_gap", "help": "track a frame this long (s) after the last"},
+    )
+    track_drive_mm: float = field(
+        default=4.0,
+        metadata={
+            "knob": "track_drive",
+            "help": "while the pusher drives, a frame every this many mm; 0: every frame",
+        },
+    )
     # --- readings of the paper's ambiguities -----------------------------------------------
-    d_metric: str = "sine"  # score term d: sine of the angle (Alg. 1 line 5) | distance_px (Eq. 1)
-    d_signed: bool = False  # score uses signed d (literal) instead of |d|
-    cos_signed: bool = False  # score uses N.V1 (literal) instead of |N.V1|
-    band_signed: bool = False  # band rule deletes d >= C_bw only (literal Alg. 2 l. 16) vs |d|
+    d_metric: str = field(
+        default="sine",
+        metadata={"help": "score term d: sine (of the angle, Alg. 1) | distance_px (Eq. 1)"},
+    )
+    d_signed: bool = field(
+        default=False, metadata={"help": "the score's d signed (literal) instead of |d|"}
+    )
+    cos_signed: bool = field(
+        default=False, metadata={"help": "the score's N.V1 signed (literal) instead of |N.V1|"}
+    )
+    band_signed: bool = field(
+        default=False,
+        metadata={"help": "the band deletes d >= C_bw only (literal Alg. 2 l. 16) vs |d|"},
+    )
     # --- contact candidates ----------------------------------------------------------------
-    # arc length between sampled contour points
-    contact_spacing_px: float = field(default=2.0, metadata={"knob": "contact_spacing"})
-    check_reachability: bool = True  # drop contacts the pusher cannot reach along -N
+    contact_spacing_px: float = field(
+        default=2.0,
+        metadata={"knob": "contact_spacing", "help": "arc length between contact candidates, px"},
+    )
+    check_reachability: bool = field(
+        default=True, metadata={"help": "drop contacts the pusher cannot reach along -N"}
+    )
     # --- beyond the paper (docs/method.md, "Beyond the paper") -------------------------------
-    # paper (Algorithms 1-2) | magnitude (also fits how much it turns) | motion (reads the
-    # tracked path) | a plug-in module:Class (`comexp.method.estimators`)
-    method: str = "paper"
-    # magnitude: rotation noise floor sigma0 (vision, unmodelled)
-    mag_noise_deg: float = field(default=1.0, metadata={"knob": "mag_noise"})
-    # magnitude: relative model error alpha of a turn, sigma^2 = sigma0^2 + (alpha rot)^2
-    mag_rel_noise: float = 0.2
-    # magnitude in episodes: the known floor and pusher friction turn each push's line of action
-    # (`floor_force_direction`); False = along the push direction, as the paper
-    mag_floor_model: bool = True
+    method: str = field(
+        default="paper",
+        metadata={
+            "help": "paper | magnitude (also fits how much each push turns) | motion (reads "
+            "the tracked path) | a plug-in module:Class (docs/your_estimator.md)"
+        },
+    )
+    mag_noise_deg: float = field(
+        default=1.0,
+        metadata={"knob": "mag_noise", "help": "magnitude: the turns' noise floor sigma0 (deg)"},
+    )
+    mag_rel_noise: float = field(
+        default=0.2,
+        metadata={"help": "magnitude: relative model error alpha of a turn (sigma0, alpha rot)"},
+    )
+    mag_floor_model: bool = field(
+        default=True,
+        metadata={
+            "help": "magnitude: the known floor and pusher friction turn each push's line of "
+            "action; false: along the push, as the paper"
+        },
+    )
     # motion: the model's revision (`comexp.method.motion_estimator.MOTION_VERSION`), pinned by
     # the grid for motion jobs so that a database is never resumed across revisions; part of
     # the episode key only when set ("" = not pinned: other methods, older databases)
-    motion_version: str = field(default="", metadata={"key_omit_default": True})
+    motion_version: str = field(
+        default="",
+        metadata={
+            "key_omit_default": True,
+            "help": "motion: the model's revision in the episode key; empty: the current one",
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.rotation_source not in ROTATION_SOURCES:
@@ -587,6 +643,11 @@ class ComEstimator:
     @property
     def region_px(self) -> int:
         return len(self.region)
+
+    @property
+    def region_m(self) -> np.ndarray:
+        """The region's points (the episode stores their hull: `comexp-db show` draws it)."""
+        return self.region
 
     def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(contact, direction) of the best valid push, or None when no push line cuts the

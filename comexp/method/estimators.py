@@ -6,7 +6,7 @@ MyEstimator` (or `my_pkg.module.MyEstimator`; in a user config directory, `estim
 holding `method: my_pkg.module:MyEstimator`, chosen with `estimator=NAME`) names a class that
 implements the `Estimator` protocol and takes `ComEstimator`'s constructor arguments. Its module
 must be importable where episodes run (installed, or on PYTHONPATH, which a local Ray's workers
-inherit; on a cluster, on every node): docs/method.md, "Your own estimator".
+inherit; on a cluster, on every node): docs/your_estimator.md.
 """
 
 from __future__ import annotations
@@ -58,6 +58,9 @@ class Estimator(Protocol):
     def region_px(self) -> int:
         """The size of the current CoM region (points), recorded per push."""
         ...
+
+    # optional: `region_m`, the region's points (its frame, m), whose hull each push stores
+    # (`comexp-db show` draws it); an estimator without it stores no region
 
 
 _PROTOCOL = ("next_push", "observe", "estimate_m", "region_px")

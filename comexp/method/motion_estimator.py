@@ -623,6 +623,11 @@ class MotionEstimator:
         """The 95% credible set's size in pixels (fine points / SUBPIXEL^2)."""
         return max(1, round(len(credible_set(self.weights)) / SUBPIXEL**2))
 
+    @property
+    def region_m(self) -> np.ndarray:
+        """The 95% credible set's points (the episode stores their hull)."""
+        return self.points[credible_set(self.weights)]
+
     def region(self) -> np.ndarray:
         """The 95% credible set's points (at most `MAX_REGION_POINTS`, evenly thinned)."""
         idx = np.sort(credible_set(self.weights))
@@ -773,7 +778,7 @@ def estimate_com_motion(
     pixel_m: float,
     motion: MotionSettings | None = None,
 ):
-    """The motion estimator on observed pushes: returns a `comexp.estimator.WorldEstimate`
+    """The motion estimator on observed pushes: returns a `comexp.method.estimator.WorldEstimate`
     (`region_m` = the 95% credible set, `pushes` = the pushes as `ObservedPush`es in the object
     frame). `outline_m` is the footprint in the object frame, centred on its area centroid, as
     for `estimate_com_world`; each push is mapped into the object frame with its own pose

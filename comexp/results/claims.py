@@ -14,8 +14,8 @@ independent draws): 2,000 replicates with a fixed seed, the 2.5 / 97.5 percentil
 lies on the other side, and is *inconclusive* otherwise.
 
 Everything else that can change a result (backend, physics identity, estimator settings,
-camera rate, protocol) separates studies by `comexp.reports.group_episodes`, the one grouping
-rule; a claim never pairs episodes across those.
+camera rate, protocol) separates studies by `comexp.results.reports.group_episodes`, the one
+grouping rule; a claim never pairs episodes across those.
 """
 
 from __future__ import annotations

@@ -12,7 +12,9 @@ else the value that describes what the old comexp did:
 - 3 -> 4: `pushes.n_frames` (0: the measured turn came from the images before and after, the
   only way before tracking) and `episodes.camera_fps` (the spec's, else 0). Early version-4
   files lack `episodes.camera_fps` (it came later under the same number): `upgrade` adds any
-  column a migration adds that is still missing at the current version.
+  column a migration adds that is still missing at the current version;
+- 4 -> 5: `pushes.region_cm` (NULL: the region the estimator kept was not stored; `comexp-db
+  show` redraws it from the stored pushes and says so).
 
 A job (a writable `ResultsDB`) upgrades the file in place, in the transaction that opens it, and
 records the new version; a reader (`comexp-db`, `load_results`) of an old SQLite file works on an
@@ -66,6 +68,7 @@ MIGRATIONS: dict[int, Migration] = {
             Added("episodes", "camera_fps", 0.0, from_spec="camera_fps"),
         ),
     ),
+    4: Migration("pushes.region_cm", (Added("pushes", "region_cm", None),)),
 }
 _TABLES = {"episodes": EPISODES, "pushes": PUSHES}
 

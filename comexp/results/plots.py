@@ -459,13 +459,30 @@ def reconstruct_regions(
     return pixel_m, regions
 
 
+def _draw_hull(ax: Any, hull: np.ndarray) -> None:
+    """The kept region: its hull filled (a point or a segment where it is that small)."""
+    if len(hull) >= 3:
+        ax.fill(hull[:, 0], hull[:, 1], color="tab:green", alpha=0.35, lw=0.8, ec="tab:green")
+    else:
+        ax.plot(hull[:, 0], hull[:, 1], color="tab:green", marker="o", ms=4, lw=2)
+
+
 def plot_episode(
     row: Mapping[str, Any], pushes: Sequence[Mapping[str, Any]], path: str | Path
 ) -> Path:
     """One episode in its object's frame: outline, each push (contact, direction, measured and
-    true rotation, decision), the CoM region after it, the true and the estimated CoM."""
+    true rotation, decision), the CoM region after it, the true and the estimated CoM.
+
+    The region after each push is the one the estimator kept: the hull each push stored
+    (`pushes.region_cm`). An episode stored without it (an older comexp, a plug-in that shows
+    no region) has its regions redrawn from the stored pushes, and the figure says so."""
     spec = json.loads(row["spec"])
     _, regions = reconstruct_regions(spec, row["estimator"], pushes)
+    kept = [
+        None if p.get("region_cm") is None else np.asarray(json.loads(p["region_cm"]))
+        for p in pushes
+    ]
+    stored = bool(pushes) and all(h is not None for h in kept)
     outline = np.asarray(spec["outline_cm"], dtype=float)
     closed = np.vstack([outline, outline[:1]])
     n = len(regions)
@@ -483,7 +500,10 @@ def plot_episode(
             continue
         ax.plot(closed[:, 0], closed[:, 1], color="black", lw=1.2)
         reg = regions[i] * 100.0
-        ax.scatter(reg[:, 0], reg[:, 1], s=2, color="tab:green", alpha=0.5, lw=0)
+        if i > 0 and stored:
+            _draw_hull(ax, kept[i - 1])
+        else:
+            ax.scatter(reg[:, 0], reg[:, 1], s=2, color="tab:green", alpha=0.5, lw=0)
         for j, p in enumerate(pushes[:i]):
             c = np.array([p["contact_x_cm"], p["contact_y_cm"]])
             d = np.array([p["dir_x"], p["dir_y"]])
@@ -500,13 +520,15 @@ def plot_episode(
         if est is not None and i == n - 1:
             ax.plot(*est, marker="+", color="tab:red", ms=11, mew=2, ls="", label="estimate")
         if i == 0:
-            ax.set_title(f"initial region ({len(reg)} px)", fontsize=8)
+            ax.set_title(f"initial region ({len(reg)} px, redrawn from the outline)", fontsize=8)
         else:
             p = pushes[i - 1]
+            size = f"region {p['region_px']} px"
+            if not stored:  # redrawn: its own size beside the one the episode kept
+                size = f"region redrawn {len(reg)} px (kept {p['region_px']})"
             ax.set_title(
                 f"push {p['k']}: measured {p['rotation_deg']:+.2f} deg, "
-                f"true {p['rotation_true_deg']:+.2f} deg\n{p['decision']}: region {len(reg)} px "
-                f"(stored {p['region_px']})",
+                f"true {p['rotation_true_deg']:+.2f} deg\n{p['decision']}: {size}",
                 fontsize=8,
             )
         ax.set_xlim(lo[0], hi[0])
@@ -521,7 +543,12 @@ def plot_episode(
     fig.suptitle(
         f"episode {row['id']}: {row['object']} CoM {row['com_index']} ({status}{err})\n"
         f"{'; '.join(t for t in (_core_label(cond), _detail_label(cond)) if t)}; object frame, "
-        "cm; region reconstructed from the stored pushes",
+        + (
+            "cm; the region each push kept (its hull)"
+            if stored
+            else "cm; region REDRAWN from the stored pushes: it may differ from the one the "
+            "episode kept"
+        ),
         fontsize=9,
     )
     out = Path(path)

@@ -659,18 +659,27 @@ def _plain(v: Any) -> str:
 
 # --------------------------------------------------------------------------- job reports
 def write_job_reports(
-    db: ResultsDB, out_dir: str | Path, keys: Sequence[str], *, job: str = ""
+    db: ResultsDB,
+    out_dir: str | Path,
+    keys: Sequence[str],
+    *,
+    job: str = "",
+    files: bool = True,
 ) -> tuple[list[Path], str]:
     """Markdown + CSV per condition and a combined summary into `out_dir` (the Hydra job dir),
-    over this job's own episodes only (its grid's `keys`), whoever stored them."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    over this job's own episodes only (its grid's `keys`), whoever stored them; the summary's
+    text. `files` False: the text only (a job that ran nothing writes no new reports)."""
     rows = db.episodes_by_keys(keys, columns=EPISODE_COLUMNS)
     tables = tables_from_rows(rows)
     header = (
         f"this job's episodes only: {len(rows)} of its {len(set(keys))} grid episodes stored"
         + (f" ({job})" if job else "")
     )
+    text = f"report: {header}\n{summary_text(tables)}"
+    if not files:
+        return [], text
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     for t in tables:
         md = out / f"errors_{t.condition.slug()}.md"
@@ -688,4 +697,4 @@ def write_job_reports(
     summary_cs = out / "summary.csv"
     summary_cs.write_text(summary_csv(tables))
     paths += [summary_md, summary_cs]
-    return paths, f"report: {header}\n{summary_text(tables)}"
+    return paths, text

@@ -8,6 +8,7 @@ floor and speed), not a Hydra sweep: a multirun (`comexp -m ...`) writes one swe
 
 from __future__ import annotations
 
+import json
 from datetime import UTC, datetime
 from typing import Any
 
@@ -28,7 +29,7 @@ from comexp.episode.task import EpisodeResult
 from comexp.results.identity import canonical_json
 
 # 2: episodes.worker, episodes.recenter_beyond_cm; 3: episodes.physics; 4: pushes.n_frames
-SCHEMA_VERSION = 4  # 4 also: episodes.camera_fps
+SCHEMA_VERSION = 5
 
 
 class Base(DeclarativeBase):
@@ -139,6 +140,9 @@ class Push(Base):
     region_px: Mapped[int] = mapped_column(Integer)
     # tracking frames the measured rotation went through (0: the images before and after)
     n_frames: Mapped[int] = mapped_column(Integer, default=0)
+    # the convex hull of the region the estimator kept after this push: JSON [[x_cm, y_cm],
+    # ...], object frame; NULL from an estimator that shows no region, or an older comexp
+    region_cm: Mapped[str | None] = mapped_column(Text, nullable=True)
 
     __table_args__ = (UniqueConstraint("episode_id", "k", name="uq_pushes_episode_k"),)
 
@@ -218,6 +222,7 @@ def push_row(p: Any) -> dict[str, Any]:
         "decision": p.decision,
         "region_px": int(p.region_px),
         "n_frames": int(getattr(p, "n_frames", 0)),
+        "region_cm": None if p.region_cm is None else json.dumps([list(v) for v in p.region_cm]),
     }
 
 

@@ -29,6 +29,7 @@ from sqlalchemy import (
     Engine,
     Integer,
     create_engine,
+    delete,
     event,
     func,
     insert,
@@ -163,6 +164,12 @@ def check_location(target: str | os.PathLike[str]) -> None:
             raise ValueError(f"{str(path)!r} exists and is not an SQLite database")
         return
     parent = path.absolute().parent
+    if not parent.exists() and not parent.parent.is_dir():
+        # the file's own folder is made (results/ on a first run); a deeper missing tree is
+        # more likely a mistyped path than a request to create it
+        raise ValueError(
+            f"cannot create {str(path)!r}: the folder {str(parent.parent)!r} does not exist"
+        )
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
@@ -404,6 +411,43 @@ class ResultsDB:
             if push_rows:
                 conn.execute(insert(PUSHES), push_rows)
         return len(ids)
+
+    def replace_failed(self, sweep_id: int | None, results: Sequence[EpisodeResult]) -> int:
+        """Store a batch of reruns of failed episodes (`retry=failed`) in one transaction: each
+        stored row that is still `failed` is updated in place (its id kept, its pushes
+        replaced); a result whose key is not stored is inserted as `add_results` does. Never
+        two rows of one key. Returns how many rows were written."""
+        self._require_writable()
+        rows = {episode_key(r.spec): r for r in results}
+        if not rows:
+            return 0
+        with self.engine.begin() as conn:
+            q = select(EPISODES.c.episode_key, EPISODES.c.id).where(
+                EPISODES.c.episode_key.in_(list(rows)), EPISODES.c.status == "failed"
+            )
+            failed = {key: int(id_) for key, id_ in conn.execute(q)}
+            for key, id_ in failed.items():
+                values = episode_row(sweep_id, key, rows[key])
+                conn.execute(update(EPISODES).where(EPISODES.c.id == id_).values(**values))
+                conn.execute(delete(PUSHES).where(PUSHES.c.episode_id == id_))
+                pushes = [{"episode_id": id_, **push_row(p)} for p in rows[key].pushes]
+                if pushes:
+                    conn.execute(insert(PUSHES), pushes)
+        rest = [r for key, r in rows.items() if key not in failed]
+        return len(failed) + (self.add_results(sweep_id, rest) if rest else 0)
+
+    def failed_keys(self, keys: Iterable[str]) -> set[str]:
+        """The subset of `keys` stored as failed (what `retry=failed` reruns)."""
+        wanted = list(dict.fromkeys(keys))
+        found: set[str] = set()
+        with self.engine.connect() as conn:
+            for i in range(0, len(wanted), _IN_CHUNK):
+                chunk = wanted[i : i + _IN_CHUNK]
+                q = select(EPISODES.c.episode_key).where(
+                    EPISODES.c.episode_key.in_(chunk), EPISODES.c.status == "failed"
+                )
+                found.update(conn.execute(q).scalars())
+        return found
 
     def _insert_new_episodes(self, conn: Any, rows: list[dict[str, Any]]) -> dict[str, int]:
         """Insert rows whose key is not stored yet; returns {key: new id}. Relies on UNIQUE."""
