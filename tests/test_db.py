@@ -449,7 +449,10 @@ def test_sqlite_file_forms() -> None:
 
 
 def test_db_location_checks_create_nothing(tmp_path: Path) -> None:
-    check_location(str(tmp_path / "new" / "deeper" / "a.db"))
+    check_location(str(tmp_path / "new" / "a.db"))  # its own folder: made by the job
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="the folder .* does not exist"):
+        check_location(str(tmp_path / "new" / "deeper" / "a.db"))  # a missing tree: refused
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match="directory"):
         check_location(str(tmp_path))
