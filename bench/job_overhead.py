@@ -113,7 +113,10 @@ def main() -> int:
                 cwd = Path(tmp) / f"{side}{i}"
                 cwd.mkdir()
                 runs[side].append(durations(run_once(python, cwd)))
-        nb = {s: notebook(p, Path(tmp)) for s, p in sides.items()}
+        nb = {}
+        for side, python in sides.items():
+            (Path(tmp) / f"{side}-notebook").mkdir()
+            nb[side] = notebook(python, Path(tmp) / f"{side}-notebook")
     names = [n for n, _ in PHASES] + ["exit", "whole command"]
     med = {s: {n: statistics.median(r[n] for r in runs[s]) for n in names} for s in sides}
     rows = [[n, *(med[s][n] for s in sides)] for n in names]
