@@ -12,7 +12,9 @@ the module path by itself); no script imports another script. It holds:
 - one worker's thread pools (`use_one_cpu`), the engines' C++ prints silenced
   (`engine_stdout_silenced`), the backend's source digest (`source_digest`), a warm-up pass
   (`warm_up`), a module loaded from a file (`load_module`), and the /proc readings of a
-  process tree (`descendants`, `cpu_seconds`, `memory_kb`, `proc_name`).
+  process tree (`descendants`, `cpu_seconds`, `memory_kb`, `proc_name`);
+- a table of figures written as docs/data/NAME.json with its provenance (`write_table`: what
+  bench/docs_tables.py renders into the docs).
 
 Light at import: the episode loop (Numba, OpenCV, the engines) is imported by the functions
 that run episodes, not here, so that bench/memory.py's driver imports `job_specs` as
@@ -22,16 +24,22 @@ that run episodes, not here, so that bench/memory.py's driver imports `job_specs
 from __future__ import annotations
 
 import collections
+import datetime
 import functools
 import hashlib
 import importlib
 import importlib.util
+import json
 import math
 import os
+import platform
+import subprocess
 import sys
 import tempfile
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
+from importlib import metadata
+from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
@@ -291,3 +299,51 @@ def memory_kb(pid: int) -> dict[str, int] | None:
             out["pss"] = int(line.split()[1])
             break
     return out
+
+
+# --- the docs' data --------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "docs" / "data"
+
+
+def machine() -> dict[str, Any]:
+    """What the figures were measured on: CPU model, cores, Python."""
+    model = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if "model name" in ln), model)
+    except OSError:
+        pass
+    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version()}
+
+
+def code_version() -> dict[str, Any]:
+    rev = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=no"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    return {"comexp": metadata.version("comexp"), "git": rev + ("+changes" if dirty else "")}
+
+
+def write_table(
+    name: str,
+    columns: Sequence[str],
+    rows: Sequence[Sequence[Any]],
+    command: str,
+    **provenance: Any,
+) -> Path:
+    """docs/data/NAME.json: the table, the command that measured it, and its provenance (the
+    code version, machine and date; `provenance`: more, e.g. the studies' own revisions)."""
+    DATA.mkdir(parents=True, exist_ok=True)
+    path = DATA / f"{name}.json"
+    meta = {**code_version(), "machine": machine(), "date": datetime.date.today().isoformat()}
+    meta.update(provenance)
+    data = {"meta": meta, "command": command, "columns": list(columns), "rows": list(rows)}
+    path.write_text(json.dumps(data, indent=1, default=float) + "\n")
+    return path

@@ -7,6 +7,8 @@ docs' generated blocks from it.
     .venv/bin/python bench/docs_tables.py knobs               # the knob table (from the code)
     .venv/bin/python bench/docs_tables.py results --db results/planar.db --db results/pybullet.db \\
         --db results/mujoco.db                                # the study's means per backend
+    .venv/bin/python bench/docs_tables.py real --data ../shared/data/mit-push-train
+                                                              # docs/real_robot.md's tables
 
 A generated block in README.md or docs/*.md is
 
@@ -24,18 +26,14 @@ blocks. A block whose data is missing says which command makes it.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import re
-import subprocess
 import sys
 from collections.abc import Sequence
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from common import DATA, write_table
 from omegaconf import MISSING
 
 from comexp.experiment.config import config_keys
@@ -45,53 +43,10 @@ from comexp.results.reports import ok_error
 from comexp.results.store import ResultsDB
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "docs" / "data"
 DOCS = (ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")))
 BLOCK = re.compile(
     r"(<!-- generated: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- end generated -->)", re.S
 )
-
-
-def machine() -> dict[str, Any]:
-    """What the figures were measured on: CPU model, cores, Python."""
-    model = platform.processor() or ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next((ln.split(":", 1)[1].strip() for ln in f if "model name" in ln), model)
-    except OSError:
-        pass
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version()}
-
-
-def code_version() -> dict[str, Any]:
-    rev = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
-    dirty = subprocess.run(
-        ["git", "status", "--porcelain", "--untracked-files=no"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-    ).stdout.strip()
-    return {"comexp": metadata.version("comexp"), "git": rev + ("+changes" if dirty else "")}
-
-
-def write_table(
-    name: str,
-    columns: Sequence[str],
-    rows: Sequence[Sequence[Any]],
-    command: str,
-    **provenance: Any,
-) -> Path:
-    """docs/data/NAME.json: the table, the command that measured it, and its provenance (the
-    code version, machine and date; `provenance`: more, e.g. the studies' own revisions)."""
-    DATA.mkdir(parents=True, exist_ok=True)
-    path = DATA / f"{name}.json"
-    meta = {**code_version(), "machine": machine(), "date": datetime.date.today().isoformat()}
-    meta.update(provenance)
-    data = {"meta": meta, "command": command, "columns": list(columns), "rows": list(rows)}
-    path.write_text(json.dumps(data, indent=1, default=float) + "\n")
-    return path
 
 
 def _cell(v: Any) -> str:
@@ -190,6 +145,79 @@ def claims(dbs: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
     return columns, out
 
 
+def real(data: str) -> list[Path]:
+    """docs/real_robot.md's tables: `comexp-real estimate` with each built-in estimator, and
+    `comexp-real replay` (the friction fitted on planar, as the command does) on every backend,
+    on the recorded pushes under `data`."""
+    from comexp.experiment.config import make_simulator
+    from comexp.real.estimate import estimate_all
+    from comexp.real.logs import read_pushes
+    from comexp.real.replay import fit_surface, replay_all, summarise, surface_of
+
+    rec = read_pushes(data)
+    command = f"python bench/docs_tables.py real --data {data}"
+    rows = []
+    for method in ("paper", "magnitude", "motion"):
+        found = estimate_all(rec, method)
+        for e in found:
+            r = e.record()
+            rows.append([method, e.object, e.pushes, r["error_cm"], r["paper_region_cm2"],
+                         "yes" if e.paper_region_keeps_true_com else "no",
+                         r["paper_region_miss_mm"]])  # fmt: skip
+        errors = [e.error_cm for e in found if e.error_cm is not None]
+        rows.append([method, "mean", sum(e.pushes for e in found),
+                     sum(errors) / len(errors), None, None, None])  # fmt: skip
+    columns = ["estimator", "object", "pushes", "error (cm)", "paper region (cm2)",
+               "region keeps the true CoM", "region misses it by (mm)"]  # fmt: skip
+    written = [write_table("real-estimate", columns, rows, command)]
+
+    planar = make_simulator("planar")
+    surfaces = {}
+    for name in sorted({surface_of(p) for p in rec.pushes}):
+        pushes = [p for p in rec.pushes if surface_of(p) == name]
+        surfaces[name] = fit_surface(planar, rec.objects, pushes, name)[0]
+    friction = ", ".join(
+        f"{n}: floor {f.mu_floor:g}, pusher {f.mu_pusher:g}" for n, f in surfaces.items()
+    )
+    runs = [("planar", "recorded"), ("planar", "ideal"), ("pybullet", "recorded"),
+            ("mujoco", "recorded")]  # fmt: skip
+    rows, replayed = [], {}
+    for backend, path in runs:
+        sim = planar if backend == "planar" else make_simulator(backend)
+        replayed[backend, path] = replay_all(sim, rec.objects, rec.pushes, surfaces, path, backend)
+        s = summarise(replayed[backend, path])
+        rows.append([backend, path, friction, s.pushes, s.failed,
+                     f"{s.sign_right} of {s.turning}", s.turn_error_median_pct,
+                     s.turn_error_median_deg, s.position_error_median_mm,
+                     s.position_error_p90_mm])  # fmt: skip
+        if sim is not planar:
+            sim.close()
+    s = summarise(replayed["planar", "recorded"])
+    rows.append(["the object stays", "", "", s.pushes, 0, "-", 100.0,
+                 s.stay_turn_error_median_deg, s.stay_position_error_median_mm,
+                 s.stay_position_error_p90_mm])  # fmt: skip
+    columns = ["backend", "pusher path", "friction (fitted)", "pushes", "failed",
+               "turn sign right (> 2 deg)",
+               "median turn error (% of the turn)", "median turn error (deg)",
+               "median position error (mm)", "p90 position error (mm)"]  # fmt: skip
+    written.append(write_table("real-replay", columns, rows, command, friction=friction))
+    rows = []
+    by_speed: dict[int, list] = {}
+    for r in replayed["planar", "recorded"]:
+        by_speed.setdefault(round(r.speed_mm_s), []).append(r)
+    for speed in sorted(by_speed):
+        s = summarise(by_speed[speed])
+        rows.append([speed, s.pushes, f"{s.sign_right} of {s.turning}", s.turn_error_median_pct,
+                     s.position_error_median_mm, s.position_error_p90_mm])  # fmt: skip
+    columns = ["pusher speed (mm/s)", "pushes", "turn sign right (> 2 deg)",
+               "median turn error (% of the turn)", "median position error (mm)",
+               "p90 position error (mm)"]  # fmt: skip
+    written.append(write_table("real-replay-speed", columns, rows, command, friction=friction))
+    planar.close()
+    print(f"fitted friction: {friction}")
+    return written
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)
@@ -197,9 +225,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("knobs", help="the knob table, from the structured config")
     res = sub.add_parser("results", help="the study's means, from its databases")
     res.add_argument("--db", action="append", required=True)
+    rr = sub.add_parser("real", help="docs/real_robot.md's tables, from recorded pushes")
+    rr.add_argument("--data", default="../shared/data/mit-push-train")
     args = ap.parse_args(argv)
     if args.command == "results":
         print(results(args.db))
+    if args.command == "real":
+        for path in real(args.data):
+            print(path)
     for path in render():
         print(f"updated {path.relative_to(ROOT)}")
     return 0

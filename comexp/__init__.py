@@ -24,8 +24,14 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from comexp.workers import kept as _kept_ray
+
 __version__ = "0.1.0"
 __all__ = ["load_results", "replay", "run"]
+
+# A kept Ray's token (`comexp-ray start`) goes into the environment now, before anything
+# imports Ray, which reads its auth settings once, when it is imported.
+_kept_ray.export_auth()
 
 
 def __getattr__(name: str) -> Any:

@@ -4,6 +4,11 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+# Jobs here (and the commands they spawn) never use a kept Ray the user may run
+# (`comexp-ray start`): its record is looked for in a folder of the tests' own.
+os.environ["COMEXP_RAY_DIR"] = os.path.join(
+    os.environ.get("TMPDIR", "/tmp"), f"comexp-tests-ray-{os.getpid()}"
+)
 
 TESTS_DIR = str(Path(__file__).resolve().parent)
 # The token auth of the first local Ray this process started (RAY_AUTH_MODE, RAY_AUTH_TOKEN):

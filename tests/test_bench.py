@@ -30,7 +30,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
 HELPERS = "common.py"  # what the scripts share: not a script
-TOOLS = {"docs_tables.py"}  # scripts that measure nothing: the docs' tables from their data
+# scripts that measure nothing: the docs' tables from their data, a study's database as text
+TOOLS = {"docs_tables.py", "study_report.py"}
 sys.path.insert(0, str(BENCH))  # as `python bench/X.py` has it
 
 from common import job_backend_options, job_simulator, job_specs  # noqa: E402
@@ -565,9 +566,11 @@ def test_docs_tables_fills_a_generated_block_from_its_data(tmp_path, monkeypatch
     """`bench/docs_tables.py`: a block is filled from docs/data/NAME.json (its table and the
     command that measured it; the provenance stays in the file), the knob table from the
     structured config; a block without data says so."""
+    import common
     import docs_tables
 
-    monkeypatch.setattr(docs_tables, "DATA", tmp_path / "data")
+    monkeypatch.setattr(common, "DATA", tmp_path / "data")  # where `write_table` writes
+    monkeypatch.setattr(docs_tables, "DATA", tmp_path / "data")  # where `render` reads
     path = docs_tables.write_table("demo", ["a", "b"], [[1, 0.5]], "python bench/demo.py")
     meta = json.loads(path.read_text())["meta"]
     assert {"comexp", "git", "machine", "date"} <= set(meta)
@@ -581,3 +584,45 @@ def test_docs_tables_fills_a_generated_block_from_its_data(tmp_path, monkeypatch
     assert "(no data yet: docs/data/none.json" in text
     assert meta["git"] not in text  # provenance in the data file, not in the docs
     assert docs_tables.render([doc]) == []  # rendered again: nothing changes
+
+
+# --- whole commands --------------------------------------------------------------------------
+
+
+def test_whole_commands_splits_a_command_into_its_phases():
+    """whole_commands.py's phases from the lines' arrival times: each phase its own share, a
+    missing phase none (a kept Ray's warm workers load no kernels), the jobs' episode time
+    from their `ran N episodes` lines."""
+    import whole_commands
+
+    ends = {"imports, compose, grid": 0.8, "Ray and workers": 1.0, "episodes": 1.3}
+    ends.update({"reports": 1.5, "exit": 1.6})
+    d = whole_commands.phase_durations(ends)
+    assert d["kernels"] == 0.0 and d["Ray and workers"] == pytest.approx(0.2)
+    assert d["exit"] == pytest.approx(0.1) and d["whole command"] == 1.6
+    assert sum(v for k, v in d.items() if k != "whole command") == pytest.approx(1.6)
+    out = "a: ran 1600 episodes in 25.3 s (0 failed)\nb: ran 16 episodes in 0.7 s (1 failed)\n"
+    assert whole_commands.episodes_s(out) == pytest.approx(26.0)
+    for name, pattern in whole_commands.PHASES:  # each phase's line as comexp prints it
+        line = {
+            "imports, compose, grid": "planar iso 40 cm/s: 16 episodes, 0 already stored, 16",
+            "kernels": "planar: kernels ready in 0.8 s",
+            "Ray and workers": "worker 1 ready: pid 7 on node 1.2.3.4",
+            "episodes": "planar iso 40 cm/s: ran 16 episodes in 0.3 s (0 failed), stored 16",
+            "reports": "reports (18 files): results/runs/x",
+        }[name]
+        assert pattern.search(line), name
+
+
+@pytest.mark.slow
+def test_whole_commands_times_the_first_job_on_a_kept_ray():
+    r = subprocess.run(
+        [sys.executable, str(BENCH / "whole_commands.py"), "first-job", "--runs", "1", "--kept"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr
+    assert figure(r"\n\s+whole command\s+{n}", r.stdout) > 0
+    assert re.search(r"new, kept Ray", r.stdout), r.stdout

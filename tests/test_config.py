@@ -367,7 +367,7 @@ def test_every_key_comexp_prints_is_documented_with_its_default() -> None:
 
 
 def test_defaults_quoted_in_the_docs_are_the_configs() -> None:
-    """"`key=value` (the default)" / "default `key=value`" anywhere in README and docs/."""
+    """ "`key=value` (the default)" / "default `key=value`" anywhere in README and docs/."""
     import re
 
     import yaml

@@ -293,9 +293,17 @@ def test_the_notebook_api_and_the_robot_library_in_a_fresh_interpreter():
 
 
 def test_import_comexp_stays_light():
-    code = "import sys, comexp; print(sorted(m for m in sys.modules if m.startswith('comexp')))"
+    """`import comexp` loads the kept Ray's record reader (its token must be in the
+    environment before anything imports Ray) and nothing else of the package, nor Ray, NumPy
+    or Hydra: the notebook API is imported on first use."""
+    code = (
+        "import sys, comexp; print(sorted(m for m in sys.modules if m.startswith('comexp')));"
+        "print(sorted(m for m in ('ray', 'numpy', 'hydra', 'sqlalchemy') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "['comexp']"
+    mine, heavy = out.stdout.strip().splitlines()
+    assert mine == "['comexp', 'comexp.workers', 'comexp.workers.kept']"
+    assert heavy == "[]"
 
 
 def test_unknown_attribute_is_an_attribute_error():

@@ -230,7 +230,9 @@ def _doc_blocks() -> list[str]:
 
 def test_the_documented_examples_run(capsys):
     blocks = _doc_blocks()
-    assert len(blocks) == 3, "the world-frame example, Algorithm 1 in the loop, object frame"
+    assert len(blocks) == 4, (
+        "the world-frame example, Algorithm 1 in the loop, object frame, recorded pushes"
+    )
     scope: dict = {}
     for block in blocks[:2]:  # in order, in one scope, as a reader would paste them
         exec(compile(block, str(DOC), "exec"), scope)  # noqa: S102 - our own document
@@ -260,3 +262,18 @@ def test_the_object_frame_example_runs():
     assert np.all(region[:, 1] < 0.01)
     assert np.all(np.abs(region[:, 0]) <= 10 * 0.0027 + 1e-9)
     assert np.allclose(estimate, region.mean(axis=0))
+
+
+def test_the_recorded_pushes_example_runs(capsys):
+    """The page's `comexp-real` example from Python: the estimators and the replay on the
+    shared recorded pushes (skipped where they are not)."""
+    from test_real_logs import SHARED
+
+    if not (SHARED / "abs").is_dir():
+        pytest.skip(f"the shared recorded pushes are not at {SHARED} (set COMEXP_REAL_DATA)")
+    (block,) = [b for b in _doc_blocks() if "read_pushes(" in b]
+    block = block.replace('"../shared/data/mit-push-train"', repr(str(SHARED)))
+    scope: dict = {}
+    exec(compile(block, str(DOC), "exec"), scope)  # noqa: S102 - our own document
+    out = capsys.readouterr().out
+    assert out.count("\n") == 5 and "turn sign right on 45 of 45" in out

@@ -64,10 +64,10 @@ def test_the_pool_starts_one_worker_per_cluster_cpu(monkeypatch, workers, joined
     p = EpisodePool(PLANAR, workers)
     assert p.requested_workers == check_workers(workers)
 
-    def new_actor():
+    def new_slot(index):
         raise _StartedError
 
-    monkeypatch.setattr(p, "_new_actor", new_actor)
+    monkeypatch.setattr(p, "_new_slot", new_slot)
     with pytest.raises(_StartedError):
         p.start()
     assert p.workers == count

@@ -12,6 +12,7 @@ from __future__ import annotations
 import atexit
 import collections
 import contextlib
+import hashlib
 import logging
 import time
 from collections.abc import Iterator, Sequence
@@ -26,13 +27,31 @@ from comexp.episode.task import EpisodeResult, EpisodeSpec
 from comexp.sim.simulator import SimulatorSpec
 
 from .actor import RemoteEpisodeWorker, Runner, failed_result
-from .session import joined_cluster, one_line
+from .kept import code_stamp
+from .session import joined_cluster, kept_session, one_line
 from .settings import AUTO, DEFAULT_LOCAL_WORKERS, PoolSettings, check_workers
 
 log = logging.getLogger("comexp.pool")
 
 # how long `EpisodePool.close` waits for its workers to close their simulators (s)
 CLOSE_WAIT_S = 5.0
+
+
+KEPT_PREFIX = "comexp-worker-"  # the named workers left warm on a kept Ray
+
+
+def warm_key(actor_args: tuple) -> str:
+    """What a warm worker was made of: the simulator, the runner, the time limits and the code
+    (comexp's and a plug-in backend's modules), as a short digest."""
+    simulator, runner, *limits = actor_args
+    runner_name = f"{getattr(runner, '__module__', '')}.{getattr(runner, '__qualname__', runner)}"
+    text = repr((simulator.name, simulator.target, sorted(simulator.options.items())))
+    text += repr((runner_name, limits, code_stamp(simulator.target)))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def _named_actors() -> list[str]:
+    return list(ray.util.list_named_actors())
 
 
 def resolve_workers(workers: Any, cluster_cpus: int, *, on_cluster: bool) -> int:
@@ -80,6 +99,8 @@ class _Slot:
     gone, no free CPU) holds no work hostage."""
 
     actor: Any
+    index: int = 0  # the worker's place in the pool (its name on a kept Ray)
+    warm: bool = False  # a named worker of a kept Ray: it outlives the job
     ready_ref: Any = None  # pending `ready()` call while starting
     since: float = 0.0
     pending: list[Any] = field(default_factory=list)  # run_batch refs, submission order
@@ -132,12 +153,49 @@ class EpisodePool:
         self.replace_timeout_s = settings.restart_timeout_s
         # the per-episode limit is enforced in the worker (workers/actor.py)
         self._actor_args = (simulator, runner, settings.episode_timeout_s, kill_grace_s)
+        # on a kept Ray the workers are named by everything they were made of, code included,
+        # so that a later job finds them warm only when they are the ones it would start
+        kept = kept_session()
+        self._warm_key = None if kept is None else warm_key(self._actor_args)
         self._slots: list[_Slot] = []
         self.stats = PoolStats()
 
     # lifecycle ----------------------------------------------------------------------------
+    def _new_slot(self, index: int) -> _Slot:
+        """Worker `index`: a new actor, or, on a kept Ray, the named one a former job of the
+        same backend, physics and code left running there (`get_if_exists`), warm."""
+        options: dict[str, Any] = {"num_cpus": 1, "max_restarts": 0}
+        if self._warm_key is not None:
+            name = f"{KEPT_PREFIX}{self._warm_key}-{index}"
+            options.update(name=name, lifetime="detached", get_if_exists=True)
+        actor = RemoteEpisodeWorker.options(**options).remote(*self._actor_args)
+        return _Slot(actor, index, warm=self._warm_key is not None)
+
     def _new_actor(self) -> Any:
+        """A replacement worker: never named (the name of the one it replaces is released only
+        once Ray has ended it), so it ends with the job; the next job starts a named one."""
         return RemoteEpisodeWorker.options(num_cpus=1, max_restarts=0).remote(*self._actor_args)
+
+    def warm_workers(self) -> int:
+        """How many of this pool's workers already run, warm, on the kept Ray (0 elsewhere)."""
+        if self._warm_key is None:
+            return 0
+        prefix = f"{KEPT_PREFIX}{self._warm_key}-"
+        return sum(n.startswith(prefix) for n in _named_actors())
+
+    def _make_room(self) -> None:
+        """On a kept Ray, end the warm workers other jobs left when this pool's would not fit
+        beside them (each holds a CPU)."""
+        mine = f"{KEPT_PREFIX}{self._warm_key}-"
+        others = [
+            n for n in _named_actors() if n.startswith(KEPT_PREFIX) and not n.startswith(mine)
+        ]
+        needed = self.workers - self.warm_workers()
+        if others and ray.available_resources().get("CPU", 0) < needed:
+            for name in others:
+                with contextlib.suppress(Exception):
+                    _kill(ray.get_actor(name))
+            log.info("ended %d warm workers of another job to make room", len(others))
 
     def start(self) -> None:
         """Create the actors and wait until each owns its simulator (init errors surface here,
@@ -152,7 +210,9 @@ class EpisodePool:
         if 0 < cpus < self.workers:  # each actor holds one CPU: more would wait forever
             log.warning("the Ray cluster has %d CPUs: using %d workers", cpus, cpus)
             self.workers = cpus
-        self._slots = [_Slot(self._new_actor()) for _ in range(self.workers)]
+        if self._warm_key is not None:
+            self._make_room()
+        self._slots = [self._new_slot(i) for i in range(self.workers)]
         try:
             infos = ray.get(
                 [s.actor.ready.remote() for s in self._slots], timeout=self.start_timeout_s
@@ -175,12 +235,14 @@ class EpisodePool:
         slot.where = str(info.get("node_ip", "?"))
         log.info("worker %d ready: pid %s on node %s", index, info.get("pid"), slot.where)
 
-    def close(self) -> None:
+    def close(self, keep_warm: bool = False) -> None:
         """Let every worker close its simulator, then end it: a killed process runs no
         cleanup, and an engine leaves what it holds behind (pybullet's scene files in the
         temp dir). A worker still busy after `CLOSE_WAIT_S` (an interrupted run) is ended
-        all the same."""
-        actors = [s.actor for s in self._slots if s.actor is not None]
+        all the same. `keep_warm` on a kept Ray: the workers stay up, warm, for the next job
+        of the same backend and physics."""
+        ending = [s for s in self._slots if not (keep_warm and s.warm)]
+        actors = [s.actor for s in ending if s.actor is not None]
         closing = []
         for a in actors:
             with contextlib.suppress(Exception):
@@ -309,6 +371,7 @@ class EpisodePool:
         _kill(slot.actor)
         slot.where = "?"
         slot.actor = self._new_actor()
+        slot.warm = False
         slot.ready_ref = slot.actor.ready.remote()
         slot.since = time.monotonic()
         starting[slot.ready_ref] = slot
@@ -391,7 +454,7 @@ def job_pool(
         return _kept[1]
     close_job_pool()
     if not _exit_hook:
-        atexit.register(close_job_pool)
+        atexit.register(close_job_pool, keep_warm=True)
         _exit_hook.append(True)
     pool = EpisodePool(simulator, workers, settings, runner=runner)
     _kept = (key, pool)
@@ -401,12 +464,13 @@ def job_pool(
 _exit_hook: list[bool] = []
 
 
-def close_job_pool() -> None:
-    """Close the pool `job_pool` keeps, if any."""
+def close_job_pool(keep_warm: bool = False) -> None:
+    """Close the pool `job_pool` keeps, if any; `keep_warm`: on a kept Ray its workers stay
+    up for the next command's job (a run cut short ends them: not a pool to reuse)."""
     global _kept
     kept, _kept = _kept, None
     if kept is not None:
-        kept[1].close()
+        kept[1].close(keep_warm=keep_warm)
 
 
 def _kill(actor: Any) -> None:

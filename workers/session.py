@@ -26,7 +26,8 @@ from typing import Any
 
 import ray
 
-from .settings import AUTO, DEFAULT_LOCAL_WORKERS, check_workers
+from . import kept as kept_ray
+from .settings import AUTO, DEFAULT_LOCAL_WORKERS, LOCAL, check_workers
 
 log = logging.getLogger("comexp.pool")
 
@@ -76,7 +77,7 @@ def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOU
     HOST:PORT `ray.address`. Left to itself Ray retries an unreachable address for minutes,
     printing GCS warnings. (`auto` names the local node, which Ray finds or fails on at once.)
     """
-    if address is None or address == "auto":
+    if address is None or address in ("auto", LOCAL):
         return
     host, port = parse_ray_address(address)
     try:
@@ -94,6 +95,8 @@ def check_ray_address(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOU
 
 
 _ray_started_here = False
+_kept: kept_ray.KeptRay | None = None  # the kept Ray this process is connected to
+KEPT_NAMESPACE = "comexp"
 _join_node: JoinNode | None = None
 _joined_cluster = False  # ensure_ray was given an address: the job runs on a cluster
 JOIN_TIMEOUT_S = 60.0  # `ray start` joins a reachable cluster in ~5 s on 2 busy cores
@@ -142,10 +145,18 @@ def ensure_ray(
     `num_cpus` is the job's `workers` for a local Ray: a count, `auto` (every CPU of this
     machine) or None (2); a cluster brings its own CPUs.
     """
-    global _ray_started_here, _join_node, _joined_cluster
+    global _ray_started_here, _join_node, _joined_cluster, _kept
     if ray.is_initialized():
         return
     local_cpus = local_ray_cpus(num_cpus)
+    if address is None:  # a local Ray: the kept one when there is one (`comexp-ray start`)
+        kept, why = kept_ray.load()
+        if why:
+            log.warning("%s", why)
+        if kept is not None:
+            _connect_kept(kept, log_to_driver)
+            return
+    address = None if address == LOCAL else address
     _joined_cluster = address is not None
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     kwargs: dict[str, Any] = dict(logging_level=logging.WARNING, log_to_driver=log_to_driver)
@@ -191,6 +202,37 @@ def ensure_ray(
         )
 
 
+def _connect_kept(kept: kept_ray.KeptRay, log_to_driver: bool) -> None:
+    """Connect to the kept Ray (its token is in the environment: `kept_ray.export_auth`, when
+    the package was imported); SessionError when it does not answer."""
+    global _kept, _ray_started_here
+    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+    if not _ray_started_here:
+        atexit.register(shutdown_ray)  # disconnects; the kept Ray runs on
+    _ray_started_here = True
+    try:
+        ray.init(
+            address=kept.address,
+            namespace=KEPT_NAMESPACE,  # where the warm workers of earlier jobs are named
+            logging_level=logging.WARNING,
+            log_to_driver=log_to_driver,
+        )
+    except (ConnectionError, RuntimeError) as e:
+        shutdown_ray()
+        raise SessionError(
+            f"cannot connect to the kept Ray at {kept.address} ({one_line(e)}); "
+            "comexp-ray stop ends it"
+        ) from None
+    _kept = kept
+    log.info("using the kept Ray at %s (comexp-ray stop stops it)", kept.address)
+
+
+def kept_session() -> kept_ray.KeptRay | None:
+    """The kept Ray this process's session is connected to (None: a Ray of its own, or a
+    cluster): its workers may outlive the job (`comexp.workers.pool`)."""
+    return _kept
+
+
 def _in_memory_auth_token() -> None:
     """Token auth for a local Ray with a token that lives only in the environment (inherited
     by Ray's processes): Ray turns token auth on for a new local Ray by itself and, without a
@@ -217,7 +259,8 @@ class _TokenAuthNotice(logging.Filter):
 
 
 def shutdown_ray() -> None:
-    global _join_node
+    global _join_node, _kept
+    _kept = None
     if ray.is_initialized():
         ray.shutdown()
     if _join_node is not None:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 AUTO = "auto"
+LOCAL = "local"  # `ray.address=local`: a local Ray of the job's own, never the kept one
 DEFAULT_LOCAL_WORKERS = 2
 
 
@@ -19,7 +20,10 @@ class RaySettings:
 
     address: str | None = field(
         default=None,
-        metadata={"help": "null: start a local Ray; auto or HOST:PORT: join that Ray cluster"},
+        metadata={
+            "help": "null: the kept Ray (comexp-ray start) if one runs, else a local Ray of "
+            "the job's own; local: always one of its own; auto or HOST:PORT: join that cluster"
+        },
     )
     log_to_driver: bool = field(
         default=False, metadata={"help": "workers' stdout/stderr on the terminal (chatty)"}

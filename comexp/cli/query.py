@@ -14,7 +14,6 @@ import csv
 import datetime
 import io
 import json
-import math
 import os
 import re
 import sys
@@ -23,6 +22,7 @@ from typing import Any, NoReturn
 
 from sqlalchemy.exc import SQLAlchemyError
 
+from comexp.cli.arguments import nonnegative_float, positive_float
 from comexp.results.claims import CLAIM_COLUMNS, claims_markdown, claims_records
 from comexp.results.filters import EpisodeFilter
 from comexp.results.reports import (
@@ -74,23 +74,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def _nonneg_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0: {text!r}")
-    return v
-
-
-def _pos_float(text: str) -> float:
-    v = _nonneg_float(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
-    return v
-
-
 def _int_at_least(minimum: int):
     def parse(text: str) -> int:
         try:
@@ -113,14 +96,14 @@ def _add_condition_filters(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("condition filters")
     g.add_argument("--backend", help="planar | pybullet | mujoco")
     g.add_argument("--floor", help="iso | aniso")
-    g.add_argument("--speed", type=_pos_float, metavar="CM_S", help="pushing speed, cm/s")
+    g.add_argument("--speed", type=positive_float, metavar="CM_S", help="pushing speed, cm/s")
     g.add_argument(
-        "--mu-floor", type=_nonneg_float, metavar="MU", help="isotropic floor: mu_x = mu_y = MU"
+        "--mu-floor", type=nonnegative_float, metavar="MU", help="isotropic floor: mu_x = mu_y = MU"
     )
-    g.add_argument("--mu-floor-x", type=_nonneg_float, metavar="MU", help="floor mu along x")
-    g.add_argument("--mu-floor-y", type=_nonneg_float, metavar="MU", help="floor mu along y")
-    g.add_argument("--mu-pusher", type=_nonneg_float, metavar="MU", help="pusher friction")
-    g.add_argument("--izz", type=_pos_float, metavar="SCALE", help="Izz scale factor")
+    g.add_argument("--mu-floor-x", type=nonnegative_float, metavar="MU", help="floor mu along x")
+    g.add_argument("--mu-floor-y", type=nonnegative_float, metavar="MU", help="floor mu along y")
+    g.add_argument("--mu-pusher", type=nonnegative_float, metavar="MU", help="pusher friction")
+    g.add_argument("--izz", type=positive_float, metavar="SCALE", help="Izz scale factor")
     g.add_argument("--object", help="object name")
     g.add_argument("--sweep", type=_pos_int, metavar="ID", help="sweep id")
     g.add_argument("--rotation-source", help="vision | oracle")

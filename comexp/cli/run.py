@@ -96,9 +96,11 @@ class ValidateCallback(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         try:
-            probe_resources(prepare_job(config).cfg)
+            job = prepare_job(config)
+            probe_resources(job.cfg)
         except ConfigError as e:
             raise Abort(str(e), EXIT_BAD_INPUT) from None
+        _prepared[job_config_yaml(config)] = job  # the job `_app` runs: checked once
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         jobs = _sweep_job_overrides(config)
@@ -207,6 +209,7 @@ class ShowJobs:
 
 _show_jobs: ShowJobs | None = None  # set by `main` for `--cfg` with `-m`
 _all_failed: list[str] = []  # the jobs of this command whose every episode failed
+_prepared: dict[str, Any] = {}  # a run's job as `ValidateCallback` checked it, by its config
 
 
 # --- one job ---------------------------------------------------------------------------------
@@ -237,7 +240,7 @@ def _app(cfg: DictConfig) -> JobResult:
     if _show_jobs is not None:  # `ValidateCallback` prints and stops before any job runs
         raise Abort("--cfg with -m: a job started (is hydra.callbacks.validate set?)", 1)
     try:
-        job = prepare_job(cfg)
+        job = _prepared.pop(job_config_yaml(cfg), None) or prepare_job(cfg)
         _scrub_hydra_files(job.cfg.db)
         result = run_job(
             job,
@@ -291,7 +294,7 @@ def _run_app() -> None:
     try:
         _app()
     finally:
-        close_job_pool()
+        close_job_pool(keep_warm=True)  # a kept Ray keeps them warm; any other Ray ends them
 
 
 def main() -> None:

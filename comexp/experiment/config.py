@@ -264,10 +264,11 @@ def load_backend(
 
 
 def make_simulator(name: str, settings: SimSettings | None = None, **options: Any) -> Simulator:
-    """A simulator of the built-in backend `name` (tests, bench, replay); `options` are its own
-    (an engine's `floor_friction`, `renderer`)."""
-    backend = load_backend(name)
-    return SimulatorSpec(name, backend._target_, options).make(settings)
+    """A simulator of the built-in backend `name` as a job's workers build it with the default
+    camera (`simulator_spec`), `options` over its own (an engine's `floor_friction`,
+    `renderer`): tests, bench, `comexp-real replay`."""
+    spec = simulator_spec(load_backend(name), CameraSettings())
+    return SimulatorSpec(name, spec.target, {**spec.options, **options}).make(settings)
 
 
 def hydra_error_line(e: BaseException) -> str:

@@ -35,9 +35,11 @@ from comexp.results.identity import episode_key
 from comexp.results.reports import write_job_reports
 from comexp.results.store import ResultsDB, check_location, redact, redact_url
 from comexp.workers.driver import Progress, run_and_store
+from comexp.workers.kept import available as kept_available
 from comexp.workers.kernel_cache import warm_kernel_cache
 from comexp.workers.pool import close_job_pool, job_pool
-from comexp.workers.session import check_ray_address, ensure_ray
+from comexp.workers.session import check_ray_address, ensure_ray, kept_session
+from comexp.workers.settings import LOCAL
 
 log = logging.getLogger("comexp")
 
@@ -184,8 +186,9 @@ def _run_todo(
     *,
     replace: bool = False,
 ) -> None:
-    """Run `todo` on a pool of `workers` and store the results under a new sweep; the kernels
-    (a local job's workers then load them) beside Ray's start."""
+    """Run `todo` on a pool of `workers` and store the results under a new sweep. Local
+    workers load the kernels a warm-up compiles, beside Ray's start (a Ray of the job's own)
+    or before the workers start (the kept Ray, whose warm workers have them already)."""
     exp = job.cfg
 
     def start_ray() -> None:
@@ -193,13 +196,17 @@ def _run_todo(
 
     # Ray first: a cluster that cannot be joined leaves no sweep row behind
     # (`probe_resources` has already rejected an address where nothing listens).
-    if exp.ray.address is None:  # local workers load the kernels this compiles
+    own_ray = exp.ray.address == LOCAL or (exp.ray.address is None and not kept_available())
+    if own_ray:
         warm_kernel_cache(job.simulator, todo[0], meanwhile=start_ray)
     else:
         start_ray()
-    sweep_id = db.start_sweep(**provenance, versions=versions(), git_rev=git_revision())
-    # the last job's workers carry over when this job's are the same (`job_pool`)
+    # the last job's workers carry over when this job's are the same (`job_pool`), and on a
+    # kept Ray an earlier command's do
     pool = job_pool(job.simulator, exp.workers, exp.execution)
+    if kept_session() is not None and not pool.warm_workers():
+        warm_kernel_cache(job.simulator, todo[0])
+    sweep_id = db.start_sweep(**provenance, versions=versions(), git_rev=git_revision())
     try:
         stats = run_and_store(
             pool,

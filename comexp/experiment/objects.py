@@ -82,7 +82,7 @@ class ObjectDef:
         description = str(data.get("description", "") or "")
         _validate(name, outline, height)
         p = geometry.ccw(outline)
-        p = p - geometry.centroid(p)
+        p = p - geometry.centroid(p, compiled=False)  # (the same bits, no kernel to load)
         return cls(
             name=name,
             outline_cm=tuple((float(x), float(y)) for x, y in p),

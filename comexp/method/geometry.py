@@ -23,12 +23,14 @@ def signed_area(poly: Sequence[Sequence[float]]) -> float:
     return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
-def centroid(poly: Sequence[Sequence[float]]) -> np.ndarray:
+def centroid(poly: Sequence[Sequence[float]], compiled: bool = True) -> np.ndarray:
     """Area centroid (shoelace). Every tracking frame asks for it (up to 64 vertices): up to
     `_SUM_BLOCK` vertices in one compiled pass (`_centroid_kernel`), with the bits of the
-    numpy form below (tests/test_geometry.py)."""
+    numpy form below (tests/test_geometry.py). `compiled` False: the numpy form, for a caller
+    that asks a few times only (the driver's objects: loading the compiled kernel costs a
+    process ~0.2 s)."""
     p = as_array(poly)
-    if len(p) <= _SUM_BLOCK:
+    if compiled and len(p) <= _SUM_BLOCK:
         return np.array(_centroid_kernel(np.ascontiguousarray(p)))
     x, y = p[:, 0], p[:, 1]
     pn = np.concatenate((p[1:], p[:1]))  # the next vertices (np.roll's, without its overhead)

@@ -188,7 +188,7 @@ def push(
     sim.place_pusher(start)
     run = _PushRun(sim, camera, outline, before, on_frame, frame_interval_s, on_still, frame_wanted)
     run.drive(cmd, start, direction)
-    run.settle(cmd, start, direction)
+    run.settle()
     run.retract(direction)
     return run.finish(before)
 
@@ -323,6 +323,7 @@ class _PushRun:
         self.last_yaw = before.pose.yaw_rad
         self.turned = 0.0
         self.box: tuple[float, float, float, float] | None = None  # `ChunkStop`'s, once asked
+        self.end = np.zeros(2)  # where the pusher's path ends (`drive`), held while settling
         self._answers: dict[float, bool] = {}  # `frame_wanted`'s, by due time (`_wanted`)
 
     def _frame_due(self, t_s: float) -> bool:
@@ -480,12 +481,17 @@ class _PushRun:
         self._answers.clear()
 
     def drive(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
-        """1) The straight path at the commanded speed; the pusher is where the path is at
-        the end of each step."""
+        """1) The straight path at the commanded speed, or the command's own path (a recorded
+        push's); the pusher is where the path is at the end of each step."""
         dt = self.dt
-        n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
-        travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
-        path = start + travelled[:, None] * direction  # the pusher at the end of every step
+        if cmd.path_xy_m is not None:
+            path = np.asarray(cmd.path_xy_m, dtype=float)
+        else:
+            n_move = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
+            travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n_move + 1), cmd.travel_m)
+            path = start + travelled[:, None] * direction  # the pusher at the end of every step
+        self.end = path[-1]
+        n_move = len(path)
         k = self.skip_still(path)
         while k < n_move and self.status is None:
             n, _ = self.advance(path[k:], driving=True)
@@ -493,17 +499,16 @@ class _PushRun:
             dx, dy = (self.sim.pusher_xy() - path[k - 1]).tolist()
             self.lag = max(self.lag, math.hypot(dx, dy))
 
-    def settle(self, cmd: PushCommand, start: np.ndarray, direction: np.ndarray) -> None:
-        """2) Hold the pusher still; at rest = the object frame's floor point and yaw below
-        the settle limits at every check for settle_hold_s."""
+    def settle(self) -> None:
+        """2) Hold the pusher still where the path ended; at rest = the object frame's floor
+        point and yaw below the settle limits at every check for settle_hold_s."""
         if self.status is not None:
             return
         s, dt, chunk = self.s, self.dt, self.chunk
         hold_checks = max(1, math.ceil(s.settle_hold_s / (dt * chunk) - 1e-9))
         quiet = 0
         checks = max(1, math.ceil(s.max_settle_s / (dt * chunk)))
-        end = start + cmd.travel_m * direction
-        held = np.repeat(end[None, :], chunk * min(checks, SETTLE_BATCH_CHUNKS), axis=0)
+        held = np.repeat(self.end[None, :], chunk * min(checks, SETTLE_BATCH_CHUNKS), axis=0)
         while checks > 0:
             n, st = self.advance(held[: chunk * checks], near_rest=True)
             checks -= n // chunk

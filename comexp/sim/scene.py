@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from comexp.method.frames import CameraSpec, Point2, Polygon2, Pose2D
@@ -167,14 +167,17 @@ class SceneSpec:
 
 @dataclass(frozen=True)
 class PushCommand:
-    """A straight push: the pusher's axis starts at `start_xy_m` (world; must be clear of the
-    object), moves along the unit vector `direction_xy` for `travel_m` at `speed_m_s`, stops,
-    and the object is left to come to rest."""
+    """A push: the pusher's axis starts at `start_xy_m` (world; must be clear of the object),
+    moves along the unit vector `direction_xy` for `travel_m` at `speed_m_s`, stops, and the
+    object is left to come to rest. A recorded push gives its path instead (`along`):
+    `path_xy_m`, where the pusher is at the end of every step; `direction_xy` is then the
+    chord's (the push line the pusher backs off along) and `speed_m_s` its mean speed."""
 
     start_xy_m: Point2
     direction_xy: Point2
     travel_m: float
     speed_m_s: float
+    path_xy_m: tuple[Point2, ...] | None = None
 
     def __post_init__(self) -> None:
         if not self.speed_m_s > 0:
@@ -184,6 +187,20 @@ class PushCommand:
         n = math.hypot(*self.direction_xy)
         if abs(n - 1.0) > 1e-6:
             raise ValueError(f"push direction must be a unit vector, |d| = {n}")
+
+    @classmethod
+    def along(cls, start_xy_m: Point2, path_xy_m: Sequence[Point2], step_s: float) -> PushCommand:
+        """The push that drives the pusher from `start_xy_m` through `path_xy_m`, one point at
+        the end of each step of `step_s` (a recorded path, resampled at the timestep)."""
+        path = tuple((float(x), float(y)) for x, y in path_xy_m)
+        if not path:
+            raise ValueError("a push path needs at least one point")
+        dx, dy = path[-1][0] - start_xy_m[0], path[-1][1] - start_xy_m[1]
+        travel = math.hypot(dx, dy)
+        if not travel > 0:
+            raise ValueError("a push path must end away from its start")
+        start = (float(start_xy_m[0]), float(start_xy_m[1]))
+        return cls(start, (dx / travel, dy / travel), travel, travel / (len(path) * step_s), path)
 
 
 @dataclass(frozen=True)

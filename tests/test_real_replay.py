@@ -1,0 +1,215 @@
+"""Replay of recorded pushes (comexp/real/replay.py, `comexp-real replay`): the round trip
+(simulate, log, read, estimate, replay: the same push again on the backend that made it), the
+protocol driving a given path as it drives the straight push, a start that overlaps the
+outline, one-line errors, and the replay of the shared MIT pushes on every backend."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_real_logs import SHARED, needs_shared
+
+from comexp.cli.real import main
+from comexp.experiment.config import make_simulator
+from comexp.real.estimate import estimate_all
+from comexp.real.logs import make_object, read_pushes, write_plain_object, write_plain_push
+from comexp.real.replay import (
+    START_GAP_M,
+    Surface,
+    _clear_start,
+    object_scene,
+    record_push,
+    replay_all,
+    summarise,
+)
+from comexp.sim.protocol import push
+from comexp.sim.scene import PushCommand
+
+BOX = np.array([[-0.05, -0.03], [0.05, -0.03], [0.05, 0.03], [-0.05, 0.03]])
+COM = (0.012, -0.006)
+SURFACE = Surface("surface", 0.3, 0.4)
+# (offset of the push line from the box's middle, angle to the normal): turns of both signs
+PUSHES = [(0.0, 0.0), (0.015, 0.0), (-0.02, 0.3), (0.01, -0.5)]
+
+
+@pytest.fixture(scope="module")
+def planar():
+    sim = make_simulator("planar")
+    yield sim
+    sim.close()
+
+
+def _box():
+    return make_object(
+        "box", BOX, Path("box"), true_com_m=COM, mass_kg=0.5, pusher_radius_m=0.005,
+        height_m=0.03,
+    )  # fmt: skip
+
+
+def _straight(offset_m: float, angle_rad: float) -> PushCommand:
+    d = (math.cos(angle_rad), math.sin(angle_rad))
+    return PushCommand((-0.05 - 0.006, offset_m), d, 0.04, 0.05)
+
+
+def test_a_given_path_drives_the_pusher_as_the_straight_push(planar):
+    """`PushCommand.along` with the straight push's own path: the same steps, the same
+    outcome, to the bit."""
+    cmd = _straight(0.015, 0.2)
+    dt = planar.settings.timestep_s
+    n = math.ceil(cmd.travel_m / (cmd.speed_m_s * dt) - 1e-9)
+    travelled = np.minimum(cmd.speed_m_s * dt * np.arange(1, n + 1), cmd.travel_m)
+    path = np.asarray(cmd.start_xy_m) + travelled[:, None] * np.asarray(cmd.direction_xy)
+    along = PushCommand.along(cmd.start_xy_m, path, dt)
+    assert along.travel_m == pytest.approx(cmd.travel_m, abs=1e-15)
+    assert along.speed_m_s == pytest.approx(cmd.speed_m_s, rel=1e-12)
+    outcomes = []
+    for c in (cmd, along):
+        planar.build(object_scene(_box(), SURFACE))
+        outcomes.append(push(planar, c))
+    a, b = outcomes
+    assert a.ok and abs(a.true_rotation_deg) > 1.0
+    assert (a.pose_after, a.steps, a.true_rotation_deg) == (
+        b.pose_after,
+        b.steps,
+        b.true_rotation_deg,
+    )
+
+
+def test_round_trip_simulate_log_read_estimate_replay(planar, tmp_path):
+    """Pushes simulated on planar, logged in the plain layout, read back, estimated and
+    replayed on planar: the replay gives the simulation's turn and final position again
+    (rounding only), for the recorded path and the idealised push alike."""
+    obj = _box()
+    write_plain_object(tmp_path / "box", BOX, COM, 0.5, 0.005, 0.03)
+    turns = []
+    for i, (offset, angle) in enumerate(PUSHES):
+        planar.build(object_scene(obj, SURFACE))
+        cols, outcome = record_push(planar, _straight(offset, angle))
+        assert outcome.ok
+        turns.append(outcome.true_rotation_deg)
+        write_plain_push(tmp_path / "box" / "pushes" / f"p{i}.csv", cols)
+    assert min(turns) < -2.0 and max(turns) > 2.0  # both signs: a sign flip would show
+
+    rec = read_pushes(tmp_path)
+    (est,) = estimate_all(rec, "paper", pixel_m=0.002)
+    assert est.pushes == len(PUSHES) and est.error_cm is not None
+    for path in ("recorded", "ideal"):
+        replayed = replay_all(planar, rec.objects, rec.pushes, {"surface": SURFACE}, path)
+        for r, turn in zip(replayed, turns, strict=True):
+            assert r.status == "ok" and r.start_shift_mm == 0.0
+            assert r.turn_recorded_deg == pytest.approx(turn, abs=1e-9)
+            assert r.turn_simulated_deg == pytest.approx(turn, abs=1e-9)
+            assert r.position_error_mm < 1e-9
+            assert r.stay_error_mm > 10.0
+        s = summarise(replayed)
+        assert s.sign_right == s.turning == len(PUSHES)
+        assert s.position_error_median_mm < 1e-9 < s.stay_position_error_median_mm
+
+
+def test_a_start_that_overlaps_the_outline_is_moved_out_along_the_normal(planar):
+    planar.build(object_scene(_box(), SURFACE))
+    start = np.array([-0.05 - 0.005 + 0.0003, 0.01])  # the disc 0.3 mm inside the left side
+    path = start + np.array([[0.001, 0.0], [0.002, 0.0]])
+    new_start, new_path, shift = _clear_start(planar, start, path)
+    assert shift == pytest.approx(0.0003 + START_GAP_M, abs=1e-9)
+    assert new_start == pytest.approx(start - [shift, 0.0])
+    assert new_path == pytest.approx(path - [shift, 0.0])
+    assert _clear_start(planar, new_start, new_path)[2] == 0.0
+
+
+def _write_box(root: Path, **known) -> Path:
+    planar = make_simulator("planar")
+    planar.build(object_scene(_box(), SURFACE))
+    cols, _ = record_push(planar, _straight(0.01, 0.0))
+    planar.close()
+    write_plain_object(root / "box", BOX, **known)
+    write_plain_push(root / "box" / "pushes" / "p0.csv", cols)
+    return root
+
+
+@pytest.mark.parametrize(
+    ("known", "args", "needle"),
+    [
+        ({"true_com_m": COM, "pusher_radius_m": 0.005, "height_m": 0.03}, [],
+         "box: replay needs its mass_kg"),
+        ({"true_com_m": COM}, [], "replay needs its mass_kg, height_m, pusher_radius_m"),
+        ({}, ["--mu-floor", "0.2"], "give both --mu-floor and --mu-pusher, or neither"),
+        ({}, ["--backend", "nosuch"], "unknown backend 'nosuch'"),
+    ],
+)  # fmt: skip
+def test_replay_errors_are_one_line(tmp_path, capsys, known, args, needle):
+    _write_box(tmp_path, **known)
+    friction = [] if "--mu-floor" in args else ["--mu-floor", "0.3", "--mu-pusher", "0.4"]
+    code = main(["replay", str(tmp_path), *friction, *args])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("comexp-real: error: ") and needle in err
+    assert "\n" not in err
+
+
+# --- the shared MIT pushes ---------------------------------------------------------------------
+
+
+def _replay_shared(capsys, backend: str) -> tuple[list[dict], str]:
+    code = main(["replay", str(SHARED), "--backend", backend, "--mu-floor", "0.3",
+                 "--mu-pusher", "0.25", "--format", "json"])  # fmt: skip
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return json.loads(out), err
+
+
+def _figures(records: list[dict]) -> dict[str, float]:
+    ok = [r for r in records if r["status"] == "ok"]
+    turning = [r for r in ok if abs(r["turn_recorded_deg"]) > 2.0]
+    rel = [abs(r["turn_error_deg"]) / abs(r["turn_recorded_deg"]) * 100 for r in turning]
+    pos = [r["position_error_mm"] for r in ok]
+    sign = sum(np.sign(r["turn_simulated_deg"]) == np.sign(r["turn_recorded_deg"]) for r in turning)
+    return {
+        "wrong_signs": len(turning) - int(sign),
+        "failed": len(records) - len(ok),
+        "turn_pct": float(np.median(rel)),
+        "pos_mm": float(np.median(pos)),
+        "pos_p90_mm": float(np.percentile(pos, 90)),
+    }
+
+
+@needs_shared
+def test_replay_of_the_shared_pushes_on_planar(capsys):
+    """Every push replays, every turn over 2 deg with the recorded sign, far better than the
+    object staying put. Bounds: the figures measured (19.6%, 2.69 mm, p90 6.88 mm with the
+    fitted friction) with a margin for another CPU's rounding; the issue's goals are the
+    xfail test below."""
+    records, err = _replay_shared(capsys, "planar")
+    f = _figures(records)
+    assert len(records) == 50 and f["failed"] == 0 and f["wrong_signs"] == 0
+    assert f["turn_pct"] < 22.0 and f["pos_mm"] < 3.0 and f["pos_p90_mm"] < 7.5
+    stay = float(np.median([r["stay_error_mm"] for r in records]))
+    assert stay > 8 * f["pos_mm"]
+    assert {"push", "object", "backend", "turn_recorded_deg", "turn_simulated_deg",
+            "position_error_mm"} <= set(records[0])  # fmt: skip
+    assert "planar, recorded path: 50 pushes (0 failed): turn sign right on 45 of 45" in err
+
+
+@needs_shared
+@pytest.mark.xfail(
+    reason="measured 19.6% / 2.69 mm / p90 6.88 mm (goals 10% / 2 mm / 4 mm): the errors grow "
+    "with the pusher's speed (10 mm/s: 6.5%, 1.82 mm) and the planar model misses it; "
+    "docs/real_robot.md, 'What the replay shows'",
+    strict=True,
+)
+def test_replay_goals_on_planar(capsys):
+    f = _figures(_replay_shared(capsys, "planar")[0])
+    assert f["turn_pct"] <= 10.0 and f["pos_mm"] <= 2.0 and f["pos_p90_mm"] <= 4.0
+
+
+@needs_shared
+@pytest.mark.parametrize("backend", ["pybullet", "mujoco"])
+def test_engines_replay_within_1_2x_of_planar(capsys, backend):
+    planar = _figures(_replay_shared(capsys, "planar")[0])
+    engine = _figures(_replay_shared(capsys, backend)[0])
+    assert engine["failed"] == 0 and engine["wrong_signs"] == 0
+    for key in ("turn_pct", "pos_mm", "pos_p90_mm"):
+        assert engine[key] <= 1.2 * planar[key], (key, engine[key], planar[key])
