@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from common import DATA, write_table
 from omegaconf import MISSING
 
@@ -152,7 +153,14 @@ def real(data: str) -> list[Path]:
     from comexp.experiment.config import make_simulator
     from comexp.real.estimate import estimate_all
     from comexp.real.logs import read_pushes
-    from comexp.real.replay import fit_surface, replay_all, summarise, surface_of
+    from comexp.real.replay import (
+        SIGN_MIN_TURN_DEG,
+        fit_surface,
+        geometry_spread,
+        replay_all,
+        summarise,
+        surface_of,
+    )
 
     rec = read_pushes(data)
     command = f"python bench/docs_tables.py real --data {data}"
@@ -213,6 +221,20 @@ def real(data: str) -> list[Path]:
                "median turn error (% of the turn)", "median position error (mm)",
                "p90 position error (mm)"]  # fmt: skip
     written.append(write_table("real-replay-speed", columns, rows, command, friction=friction))
+    rows = []
+    for amplitude_mm in (0.5, 1.0, 1.5):
+        spread = geometry_spread(planar, rec.objects, rec.pushes, surfaces, amplitude_mm / 1000)
+        pos = [g.position_mm for g in spread]
+        turn = [
+            g.turn_deg / abs(g.turn_recorded_deg) * 100.0
+            for g in spread
+            if abs(g.turn_recorded_deg) > SIGN_MIN_TURN_DEG
+        ]
+        rows.append([amplitude_mm, len(spread), float(np.median(turn)), float(np.median(pos)),
+                     float(np.percentile(pos, 90))])  # fmt: skip
+    columns = ["geometry off by (mm)", "pushes", "median turn change (% of the turn)",
+               "median position change (mm)", "p90 position change (mm)"]  # fmt: skip
+    written.append(write_table("real-replay-geometry", columns, rows, command, friction=friction))
     planar.close()
     print(f"fitted friction: {friction}")
     return written

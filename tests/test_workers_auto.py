@@ -101,3 +101,24 @@ def test_ensure_ray_starts_a_local_ray_with_the_workers_cpus(
     else:
         assert kw["address"] == address and "num_cpus" not in kw  # the cluster's own CPUs
     assert session.joined_cluster() is joined
+
+
+def test_a_pool_whose_ray_session_ended_closes_without_ray(monkeypatch) -> None:
+    """The pool a job kept (`job_pool`) after its Ray was shut down: closing it makes no
+    remote call, which Ray would answer by starting a new local Ray (its auto-init: a test
+    waited 80 s on one)."""
+
+    touched: list[str] = []
+
+    class Gone:  # an actor of the ended session: any use of it is recorded
+        def __getattr__(self, name):
+            touched.append(name)
+            raise AttributeError(name)
+
+    monkeypatch.setattr(pool_mod.ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(pool_mod.ray, "wait", lambda *a, **k: touched.append("wait"))
+    monkeypatch.setattr(pool_mod.ray, "kill", lambda *a, **k: touched.append("kill"))
+    p = EpisodePool(PLANAR, 2)
+    p._slots = [pool_mod._Slot(Gone(), 0), pool_mod._Slot(Gone(), 1)]
+    p.close()
+    assert p._slots == [] and touched == []

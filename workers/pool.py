@@ -241,6 +241,9 @@ class EpisodePool:
         temp dir). A worker still busy after `CLOSE_WAIT_S` (an interrupted run) is ended
         all the same. `keep_warm` on a kept Ray: the workers stay up, warm, for the next job
         of the same backend and physics."""
+        if not ray.is_initialized():  # its workers ended with their Ray session (and a remote
+            self._slots = []  # call now would start a new Ray: Ray's auto-init)
+            return
         ending = [s for s in self._slots if not (keep_warm and s.warm)]
         actors = [s.actor for s in ending if s.actor is not None]
         closing = []

@@ -221,8 +221,10 @@ def replay_push(
     surface: Surface,
     path: str = "recorded",
     backend: str | None = None,
+    offset_m: Sequence[float] = (0.0, 0.0),
 ) -> ReplayedPush:
-    """Drive one recorded push on `sim` (module docstring) and compare."""
+    """Drive one recorded push on `sim` (module docstring) and compare. `offset_m` moves the
+    pusher's whole path (object frame at the log's first pose): `geometry_spread`'s probe."""
     if path not in PATHS:
         raise ValueError(f"path must be one of {PATHS}, got {path!r}")
     pc = push_contact(rec, obj)
@@ -230,6 +232,7 @@ def replay_push(
     sim.build(object_scene(obj, surface))
     dt = sim.settings.timestep_s
     start, steps = recorded_path(rec, dt)
+    start, steps = start + np.asarray(offset_m), steps + np.asarray(offset_m)
     start, steps, shift = _clear_start(sim, start, steps)
     if shift > MAX_START_SHIFT_M:
         raise ReplayError(f"{rec.path}: the pusher starts {shift * 1000:.1f} mm inside {obj.name}")
@@ -292,6 +295,56 @@ def replay_all(
         out.append(r)
         if on_push is not None:
             on_push(r)
+    return out
+
+
+@dataclass(frozen=True)
+class GeometrySpread:
+    """How far one push's replay moves when its recorded geometry is off by `amplitude_m`:
+    the RMS over the pusher's path moved by +-amplitude along the contact normal and along
+    the edge, against the replay as recorded (simulation against simulation)."""
+
+    push: str
+    amplitude_m: float
+    position_mm: float
+    turn_deg: float
+    turn_recorded_deg: float
+
+
+def geometry_spread(
+    sim: Simulator,
+    objects: dict[str, RecordedObject],
+    pushes: Sequence[RecordedPush],
+    surfaces: dict[str, Surface],
+    amplitude_m: float,
+) -> list[GeometrySpread]:
+    """`GeometrySpread` of every push that moved the object: how much of a replay's error the
+    recorded contact geometry's uncertainty (~1.5 mm, the dataset's README) can explain."""
+    out = []
+    for rec in pushes:
+        obj, surface = objects[rec.object_name], surfaces[surface_of(rec)]
+        pc = push_contact(rec, obj)
+        if not pc.moved:
+            continue
+        n = np.asarray(pc.normal)
+        base = replay_push(sim, obj, rec, surface)
+        moved = [
+            replay_push(sim, obj, rec, surface, offset_m=amplitude_m * d)
+            for d in (n, -n, np.array([-n[1], n[0]]), np.array([n[1], -n[0]]))
+        ]
+        if base.final_simulated_m is None or any(m.final_simulated_m is None for m in moved):
+            continue
+        dp = [np.hypot(*np.subtract(m.final_simulated_m, base.final_simulated_m)) for m in moved]
+        dt = [m.turn_simulated_deg - base.turn_simulated_deg for m in moved]
+        out.append(
+            GeometrySpread(
+                rec.name,
+                amplitude_m,
+                float(np.sqrt(np.mean(np.square(dp)))) * 1000.0,
+                float(np.sqrt(np.mean(np.square(dt)))),
+                base.turn_recorded_deg,
+            )
+        )
     return out
 
 
