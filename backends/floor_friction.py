@@ -538,6 +538,9 @@ def _update_holding(geo, fs, normal):
     _set_holding(geo, fs, tot, mom)
 
 
+COP_INSIDE_M = 1e-5  # how far inside the samples' hull a pressure centre is kept
+
+
 @njit(cache=True)
 def set_cop_kernel(geo, fs, normal, cx, cy):
     """Pressure (into `normal`) for a centre of pressure c (object frame, from the CoM);
@@ -554,7 +557,7 @@ def set_cop_kernel(geo, fs, normal, cx, cy):
         for i in range(geo.sample_hull_o.shape[0]):
             v = geo.sample_hull_n[i, 0] * (k * cx) + geo.sample_hull_n[i, 1] * (k * cy)
             worst = max(worst, v - geo.sample_hull_o[i])
-        if worst <= -1e-5:
+        if worst <= -COP_INSIDE_M:
             break
         k *= 0.95
     cx, cy = k * cx, k * cy
@@ -665,6 +668,13 @@ class FootprintFriction:
         self.sample_hull_n, self.sample_hull_o, self.hull_n, self.hull_o = hulls_of(
             outline, self.set.samples, self.com, key
         )
+        if float(np.min(self.sample_hull_o)) < COP_INSIDE_M:
+            # no pressure on the samples holds up a CoM beyond them (on or past the outline's
+            # edge); `set_cop_kernel` would shrink the pressure centre towards it for ever
+            raise ValueError(
+                f"{obj.name}: the CoM ({self.com[0]:.4f}, {self.com[1]:.4f}) m is not inside "
+                "the footprint's support: nothing holds the object up"
+            )
         s = self.set
         c = np.ascontiguousarray
         self.geo = FrictionGeometry(

@@ -164,9 +164,10 @@ def real(data: str) -> list[Path]:
 
     rec = read_pushes(data)
     command = f"python bench/docs_tables.py real --data {data}"
+    planar = make_simulator("planar")
     rows = []
-    for method in ("paper", "magnitude", "motion"):
-        found = estimate_all(rec, method)
+    for method in ("paper", "magnitude", "motion", "fit"):
+        found = estimate_all(rec, method, simulator=planar)
         for e in found:
             r = e.record()
             rows.append([method, e.object, e.pushes, r["error_cm"], r["paper_region_cm2"],
@@ -179,7 +180,6 @@ def real(data: str) -> list[Path]:
                "region keeps the true CoM", "region misses it by (mm)"]  # fmt: skip
     written = [write_table("real-estimate", columns, rows, command)]
 
-    planar = make_simulator("planar")
     surfaces = {}
     for name in sorted({surface_of(p) for p in rec.pushes}):
         pushes = [p for p in rec.pushes if surface_of(p) == name]

@@ -636,3 +636,15 @@ def test_the_plane_first_solve_makes_the_free_first_solve_s_choices():
                                      tau, r0, 1.0, lam0)  # fmt: skip
                 held_by_friction += plane[1] > 0.0
     assert held_by_friction >= 3  # 8 with this seed
+
+
+@pytest.mark.parametrize("com_x_m", [0.0499, 0.05, 0.06])
+def test_a_com_beyond_the_footprint_is_refused_at_build(com_x_m):
+    """A CoM on or past the outline's edge (a forward-model fit's candidate, a user's CoM)
+    has no pressure that holds the object up: the build refuses it in one line instead of
+    the pressure centre's search stepping towards it for ever (a replay ran for minutes)."""
+    sim = PlanarSimulator()
+    scene = SceneSpec(FloorSpec(0.3, 0.3), box_object(0.1, 0.06, 0.02, com_m=(com_x_m, 0.0)))
+    with pytest.raises(ValueError, match="not inside the footprint's support"):
+        sim.build(scene)
+    sim.build(replace(scene, obj=box_object(0.1, 0.06, 0.02, com_m=(0.045, 0.0))))

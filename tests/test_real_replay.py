@@ -233,3 +233,43 @@ def test_the_recorded_geometry_does_not_explain_the_replay_error():
     assert len(spread) == len(pushes) and all(g.position_mm == 0.0 for g in none)
     pos = [g.position_mm for g in spread]
     assert 0.2 < float(np.median(pos)) < 2.0
+
+
+# --- the fit: the CoM whose replays reproduce the pushes ------------------------------------
+
+
+def test_the_fit_finds_the_com_of_pushes_simulated_with_it(planar, tmp_path):
+    """Pushes simulated on planar with an off-centre CoM and a friction pair of the fit's
+    grid, logged and read back: `--estimator fit` finds that CoM to within its finest step
+    (1.25 mm), where the paper's method from the same pushes is farther off."""
+    obj = _box()
+    surface = Surface("surface", 0.3, 0.25)
+    write_plain_object(tmp_path / "box", BOX, COM, 0.5, 0.005, 0.03)
+    for i, (offset, angle) in enumerate(PUSHES):
+        planar.build(object_scene(obj, surface))
+        cols, outcome = record_push(planar, _straight(offset, angle))
+        assert outcome.ok
+        write_plain_push(tmp_path / "box" / "pushes" / f"p{i}.csv", cols)
+    rec = read_pushes(tmp_path)
+    (fit,) = estimate_all(rec, "fit", simulator=planar)
+    (paper,) = estimate_all(rec, "paper")
+    assert fit.error_cm < 0.125 < paper.error_cm
+
+
+def test_the_fit_needs_a_simulator_and_the_pushers_radius(planar, tmp_path):
+    rec = read_pushes(_write_box(tmp_path / "a", true_com_m=COM))
+    with pytest.raises(ValueError, match="needs a planar simulator"):
+        estimate_all(rec, "fit")
+    with pytest.raises(ValueError, match="the fit needs the pusher's radius"):
+        estimate_all(rec, "fit", simulator=planar)
+
+
+@needs_shared
+@pytest.mark.slow
+def test_the_fit_on_the_shared_pushes(capsys):
+    """`comexp-real estimate --estimator fit` on the shared pushes: mean error 0.346 cm
+    measured (the issue's goal 0.5 cm; the paper's method 1.19 cm); ~3 min."""
+    assert main(["estimate", str(SHARED), "--estimator", "fit", "--format", "json"]) == 0
+    records = json.loads(capsys.readouterr().out)
+    errors = [r["error_cm"] for r in records]
+    assert len(errors) == 4 and sum(errors) / 4 <= 0.5

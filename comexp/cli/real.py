@@ -27,7 +27,13 @@ from typing import Any, NoReturn
 
 from comexp.cli.arguments import positive_float
 from comexp.experiment.config import load_backend, make_simulator
-from comexp.real.estimate import DEFAULT_PIXEL_M, RECORD_FIELDS, check_estimator, estimate_all
+from comexp.real.estimate import (
+    DEFAULT_PIXEL_M,
+    RECORD_FIELDS,
+    ObjectEstimate,
+    check_estimator,
+    estimate_all,
+)
 from comexp.real.logs import read_pushes
 from comexp.real.replay import PATHS, Surface, fit_surface, replay_all, summarise, surface_of
 from comexp.sim.simulator import Simulator
@@ -51,7 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--estimator",
         default="paper",
         metavar="NAME",
-        help="paper (default), magnitude, motion, or a plug-in module:Class",
+        help="paper (default), magnitude, motion, fit (the CoM whose replays reproduce the "
+        "pushes), or a plug-in module:Class",
     )
     e.add_argument("--format", choices=("md", "csv", "json"), default="md")
     e.add_argument(
@@ -124,11 +131,24 @@ def format_records(records: Sequence[dict[str, Any]], fmt: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _progress(e: ObjectEstimate) -> None:
+    """A line on stderr per object done (the fit takes tens of seconds an object)."""
+    error = "" if e.error_cm is None else f", {e.error_cm:.3f} cm from the true CoM"
+    print(f"{e.object}: {e.estimator} from {e.pushes} pushes{error}", file=sys.stderr)
+
+
 def _estimate(args: argparse.Namespace) -> str:
     check_estimator(args.estimator)  # before reading: a typo fails at once
     rec = read_pushes(args.dir)
     pixel_m = args.pixel_mm / 1000.0
-    results = estimate_all(rec, args.estimator, pixel_m, args.max_angle_deg)
+    sim = make_simulator("planar") if args.estimator == "fit" else None
+    try:
+        results = estimate_all(
+            rec, args.estimator, pixel_m, args.max_angle_deg, sim, on_object=_progress
+        )
+    finally:
+        if sim is not None:
+            sim.close()
     return format_records([r.record() for r in results], args.format)
 
 

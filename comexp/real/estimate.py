@@ -1,6 +1,7 @@
 """Every object's CoM from its recorded pushes, with any estimator: the paper's
 (`estimate_com_world`), `magnitude` (the same with `EstimatorSettings(method="magnitude")`),
-`motion` (`estimate_com_motion`, which also reads the tracked path) or a plug-in
+`motion` (`estimate_com_motion`, which also reads the tracked path), `fit` (the CoM whose
+replays on planar reproduce the pushes: `comexp.real.fit`; recorded pushes only) or a plug-in
 `module:Class` (the `Estimator` protocol of `comexp.method.estimator`, fed the observed pushes).
 
 Each push gives (`comexp.real.logs.push_contact`): the contact where the object first moves
@@ -17,7 +18,7 @@ sign cuts it away), whatever estimator gave the estimate.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,11 +36,15 @@ from comexp.method.estimator import (
 from comexp.method.estimators import make_estimator
 from comexp.method.frames import Pose2D
 from comexp.method.motion_estimator import MotionPush, estimate_com_motion
+from comexp.real.fit import fit_com
 from comexp.real.logs import PushContact, RecordedObject, RecordedPush, RecordedPushes, push_contact
+from comexp.sim.simulator import Simulator
 
 # The grid spacing of the CoM region (the paper's pixel): 1 mm, finer than the recorded
 # geometry's ~1.5 mm uncertainty. It also sets the paper's band (C_bw_px = 10 pixels = 1 cm).
 DEFAULT_PIXEL_M = 0.001
+# estimators of recorded pushes only: `fit` needs the pusher's recorded path and a simulator
+RECORDED_ONLY = ("fit",)
 
 RECORD_FIELDS = (
     "object",
@@ -122,8 +127,11 @@ class ObjectEstimate:
 def check_estimator(name: str) -> str:
     """`name` if it names a built-in method or an importable plug-in class, else ValueError
     (one line)."""
+    if name in RECORDED_ONLY:
+        return name
     if name not in METHODS and not is_plugin(name):
-        raise ValueError(f"unknown estimator {name!r}: one of {', '.join(METHODS)} or module:Class")
+        known = ", ".join((*METHODS, *RECORDED_ONLY))
+        raise ValueError(f"unknown estimator {name!r}: one of {known} or module:Class")
     EstimatorSettings(method=name)  # imports and checks a plug-in: ValueError in one line
     return name
 
@@ -210,9 +218,10 @@ def estimate_object(
     estimator: str = "paper",
     pixel_m: float = DEFAULT_PIXEL_M,
     max_angle_deg: float | None = None,
+    simulator: Simulator | None = None,
 ) -> ObjectEstimate:
     """One object's CoM from its recorded pushes (module docstring). ValueError when none of
-    its pushes is usable."""
+    its pushes is usable. `simulator`: a planar simulator, for `fit`."""
     used = usable_pushes(pushes, obj, max_angle_deg)
     if not used:
         raise ValueError(f"{obj.name}: none of its {len(pushes)} pushes moved the object")
@@ -226,6 +235,10 @@ def estimate_object(
     elif estimator == "motion":
         motion = [motion_push(p, pc) for p, pc in used]
         com = estimate_com_motion(obj.outline_m, motion, pixel_m).com_object_m
+    elif estimator == "fit":
+        if simulator is None:
+            raise ValueError("the fit estimator needs a planar simulator (simulator=...)")
+        com = fit_com(simulator, obj, [p for p, _ in used]).com_m
     else:
         com = _plugin_com(check_estimator(estimator), obj, used, pixel_m)
     return ObjectEstimate(
@@ -245,10 +258,18 @@ def estimate_all(
     estimator: str = "paper",
     pixel_m: float = DEFAULT_PIXEL_M,
     max_angle_deg: float | None = None,
+    simulator: Simulator | None = None,
+    on_object: Callable[[ObjectEstimate], None] | None = None,
 ) -> list[ObjectEstimate]:
-    """`estimate_object` for every object of `read_pushes`' result, by name."""
+    """`estimate_object` for every object of `read_pushes`' result, by name (`on_object` is
+    told of each as it is done)."""
     check_estimator(estimator)
-    return [
-        estimate_object(rec.objects[name], rec.of(name), estimator, pixel_m, max_angle_deg)
-        for name in sorted(rec.objects)
-    ]
+    out = []
+    for name in sorted(rec.objects):
+        e = estimate_object(
+            rec.objects[name], rec.of(name), estimator, pixel_m, max_angle_deg, simulator
+        )
+        out.append(e)
+        if on_object is not None:
+            on_object(e)
+    return out
