@@ -30,6 +30,7 @@ import json
 import re
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +153,7 @@ def real(data: str) -> list[Path]:
     on the recorded pushes under `data`."""
     from comexp.experiment.config import make_simulator
     from comexp.real.estimate import estimate_all
+    from comexp.real.force import SLIDING_DEG, contact_force, friction_by_speed
     from comexp.real.logs import read_pushes
     from comexp.real.replay import (
         SIGN_MIN_TURN_DEG,
@@ -165,9 +167,11 @@ def real(data: str) -> list[Path]:
     rec = read_pushes(data)
     command = f"python bench/docs_tables.py real --data {data}"
     planar = make_simulator("planar")
-    rows = []
+    rows, fitted = [], {}
     for method in ("paper", "magnitude", "motion", "fit"):
         found = estimate_all(rec, method, simulator=planar)
+        if method == "fit":  # each object with the CoM its pushes fit: a replay row below
+            fitted = {e.object: replace(rec.objects[e.object], true_com_m=e.com_m) for e in found}
         for e in found:
             r = e.record()
             rows.append([method, e.object, e.pushes, r["error_cm"], r["paper_region_cm2"],
@@ -200,6 +204,11 @@ def real(data: str) -> list[Path]:
                      s.position_error_p90_mm])  # fmt: skip
         if sim is not planar:
             sim.close()
+    s = summarise(replay_all(planar, fitted, rec.pushes, surfaces, "recorded", "planar"))
+    rows.append(["planar", "recorded, each object's CoM fitted (`fit`)", friction, s.pushes,
+                 s.failed, f"{s.sign_right} of {s.turning}", s.turn_error_median_pct,
+                 s.turn_error_median_deg, s.position_error_median_mm,
+                 s.position_error_p90_mm])  # fmt: skip
     s = summarise(replayed["planar", "recorded"])
     rows.append(["the object stays", "", "", s.pushes, 0, "-", 100.0,
                  s.stay_turn_error_median_deg, s.stay_position_error_median_mm,
@@ -236,6 +245,13 @@ def real(data: str) -> list[Path]:
                "median position change (mm)", "p90 position change (mm)"]  # fmt: skip
     written.append(write_table("real-replay-geometry", columns, rows, command, friction=friction))
     planar.close()
+    forces = [contact_force(p, rec.objects[p.object_name]) for p in rec.pushes]
+    readings = friction_by_speed([f for f in forces if f is not None])
+    rows = [["all" if g.speed_mm_s is None else g.speed_mm_s, g.pushes, g.sliding, g.mu_pusher]
+            for g in readings]  # fmt: skip
+    columns = ["pusher speed (mm/s)", "pushes with a reading", f"sliding (>= {SLIDING_DEG:g} deg)",
+               "the pusher's friction (median abs tan)"]  # fmt: skip
+    written.append(write_table("real-force", columns, rows, command))
     print(f"fitted friction: {friction}")
     return written
 

@@ -4,13 +4,16 @@
     comexp-real estimate DIR [--estimator NAME] [--format md|csv|json] [--pixel-mm MM]
     comexp-real replay DIR [--backend NAME] [--path recorded|ideal] [--mu-floor X --mu-pusher Y]
                            [--format md|csv|json]
+    comexp-real force DIR [--sliding-deg DEG] [--format md|csv|json]
 
 Both read every push under DIR (`comexp.real.logs.read_pushes`: the MIT pushing dataset's
 layout or the plain CSV layout). `estimate` prints one record per object: its CoM estimated
 from its pushes, the error against the true CoM, and the paper's region from the same pushes.
 `replay` drives each push on a backend (`comexp.real.replay`) and prints one record per push,
 then a summary line against the do-nothing prediction; without `--mu-floor`/`--mu-pusher` each
-surface's friction is fitted once on its pushes (on planar). Any error (a bad log, an unknown
+surface's friction is fitted once on its pushes (on planar). `force` reads the recorded
+contact force of each push (`comexp.real.force`) and the pusher's friction from the sliding
+ones. Any error (a bad log, an unknown
 estimator or backend, a parameter the physics needs) is one line, `comexp-real: error: ...`,
 and exit status 2.
 """
@@ -25,7 +28,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
-from comexp.cli.arguments import positive_float
+from comexp.cli.arguments import nonnegative_float, positive_float
 from comexp.experiment.config import load_backend, make_simulator
 from comexp.real.estimate import (
     DEFAULT_PIXEL_M,
@@ -34,6 +37,7 @@ from comexp.real.estimate import (
     check_estimator,
     estimate_all,
 )
+from comexp.real.force import SLIDING_DEG, contact_force, friction_by_speed
 from comexp.real.logs import read_pushes
 from comexp.real.replay import PATHS, Surface, fit_surface, replay_all, summarise, surface_of
 from comexp.sim.simulator import Simulator
@@ -94,6 +98,16 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("object", "speed"),
         help="a summary line per object or per pusher speed too",
     )
+    f = sub.add_parser("force", help="the recorded contact force and the pusher's friction")
+    f.add_argument("dir", metavar="DIR", help="a folder of recorded pushes (either layout)")
+    f.add_argument(
+        "--sliding-deg",
+        type=nonnegative_float,
+        default=SLIDING_DEG,
+        metavar="DEG",
+        help=f"pushes this far from the normal slide on the pusher (default {SLIDING_DEG:g})",
+    )
+    f.add_argument("--format", choices=("md", "csv", "json"), default="md")
     return p
 
 
@@ -209,27 +223,76 @@ def _replay(args: argparse.Namespace) -> str:
         unit = " mm/s" if args.by == "speed" else ""
         for key in sorted(groups):
             summary += f"\n  {key}{unit}: {summarise(groups[key]).line()}"
-    if args.format == "json":
+    return _with_summary(records, args.format, summary, REPLAY_MD)
+
+
+def _with_summary(
+    records: Sequence[dict[str, Any]],
+    fmt: str,
+    summary: str,
+    md_columns: Sequence[tuple[str, str]],
+) -> str:
+    """Per-push records as JSON or CSV (the summary on stderr), or as a Markdown table of
+    `md_columns` followed by the summary."""
+    if fmt == "json":
         print(summary, file=sys.stderr)
-        return json.dumps(records, indent=2) + "\n"
-    if args.format == "csv":
+        return json.dumps(list(records), indent=2) + "\n"
+    if fmt == "csv":
         print(summary, file=sys.stderr)
         out = io.StringIO()
         w = csv.DictWriter(out, fieldnames=list(records[0]), lineterminator="\n")
         w.writeheader()
         w.writerows({k: "" if v is None else v for k, v in r.items()} for r in records)
         return out.getvalue()
-    lines = ["| " + " | ".join(h for _, h in REPLAY_MD) + " |", "|" + "---|" * len(REPLAY_MD)]
+    lines = ["| " + " | ".join(h for _, h in md_columns) + " |", "|" + "---|" * len(md_columns)]
     for r in records:
-        cells = [_md_value(k, r[k]) if k != "push" else f"`{r[k]}`" for k, _ in REPLAY_MD]
+        cells = [_md_value(k, r[k]) if k != "push" else f"`{r[k]}`" for k, _ in md_columns]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join([*lines, "", summary]) + "\n"
+
+
+FORCE_MD = (
+    ("object", "object"),
+    ("speed_mm_s", "mm/s"),
+    ("angle_to_normal_deg", "angle (deg)"),
+    ("samples", "samples"),
+    ("force_from_normal_deg", "force from normal (deg)"),
+    ("force_n", "force (N)"),
+    ("sliding", "sliding"),
+    ("push", "push"),
+)
+
+
+def _force(args: argparse.Namespace) -> str:
+    rec = read_pushes(args.dir)
+    if all(p.force is None for p in rec.pushes):
+        raise ValueError(
+            f"{args.dir}: no push records a force (the dataset's ft_wrench, or the plain "
+            "layout's force_x_n and force_y_n columns)"
+        )
+    found = [contact_force(p, rec.objects[p.object_name], args.sliding_deg) for p in rec.pushes]
+    forces = [f for f in found if f is not None]
+    if not forces:
+        raise ValueError(f"{args.dir}: no push has a force reading while in contact")
+    lines = []
+    for g in friction_by_speed(forces):
+        label = "all" if g.speed_mm_s is None else f"  {g.speed_mm_s} mm/s"
+        value = "-" if g.mu_pusher is None else f"{g.mu_pusher:.3f}"
+        lines.append(
+            f"{label}: {g.pushes} pushes, {g.sliding} sliding, the pusher's friction {value}"
+        )
+    summary = (
+        f"contact force read on {len(forces)} of {len(rec.pushes)} pushes; the pusher's "
+        f"friction is the median |tan| of the force's angle from the normal over the pushes "
+        f"at least {args.sliding_deg:g} deg from it\n" + "\n".join(lines)
+    )
+    return _with_summary([f.record() for f in forces], args.format, summary, FORCE_MD)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        text = _replay(args) if args.command == "replay" else _estimate(args)
+        text = {"replay": _replay, "estimate": _estimate, "force": _force}[args.command](args)
     except ValueError as e:  # RecordedPushError included: one line naming the file
         print(f"{PROG}: error: {str(e).splitlines()[0]}", file=sys.stderr)
         return 2

@@ -12,7 +12,12 @@ Two layouts, one entry point, `read_pushes(DIR)` (docs/real_robot.md, "Recorded 
 - the plain layout for a robot's own logs: DIR/<object>/outline.csv (x_m, y_m in the frame
   whose pose the logs record), an optional DIR/<object>/object.yaml (true_com_m, mass_kg,
   pusher_radius_m) and one CSV per push in DIR/<object>/pushes/ (t_s, x_m, y_m, yaw_rad,
-  pusher_x_m, pusher_y_m). DIR may also be one object's folder.
+  pusher_x_m, pusher_y_m, and optionally force_x_n, force_y_n). DIR may also be one object's
+  folder.
+
+Where a log records the force on the pusher (the dataset's `ft_wrench`, the plain layout's
+force columns; world frame, newtons) the push carries it (`RecordedPush.force`):
+`comexp.real.force` reads the pusher's friction from it.
 
 Why the checks: a log in the wrong frame (the outline turned, shifted or mirrored against the
 poses) still gives an estimate, silently wrong. So every push is checked against its outline
@@ -62,6 +67,7 @@ MAX_START_OVERLAP_M = 0.003
 MAX_CONTACT_GAP_M = 0.010
 
 PLAIN_COLUMNS = ("t_s", "x_m", "y_m", "yaw_rad", "pusher_x_m", "pusher_y_m")
+FORCE_COLUMNS = ("force_x_n", "force_y_n")  # optional: the force on the pusher, world frame
 OBJECT_KEYS = ("true_com_m", "mass_kg", "pusher_radius_m", "height_m")
 DATASET_KEYS = ("outline_turn_deg", "pusher_radius_m", "height_m", "true_com", "objects")
 DATASET_DEFAULTS = Path(__file__).with_name("mit_push.yaml")
@@ -96,8 +102,9 @@ class RecordedPush:
     """One recorded push: the object frame's poses (its origin at the outline's centroid, yaw
     unwrapped) at `t_s`, and the pusher axis' path at `pusher_t_s` (both seconds since the log's
     first sample, strictly increasing), plus the nominal speed and push angle (rad, from the
-    contact normal) when the log says them. `samples_dropped`: repeated or back-stepping
-    timestamps dropped on reading."""
+    contact normal) when the log says them. `force`: the force on the pusher where the log
+    records it, rows of (t_s on the same clock, fx_n, fy_n) in the world frame, else None.
+    `samples_dropped`: repeated or back-stepping timestamps dropped on reading."""
 
     name: str
     object_name: str
@@ -112,6 +119,7 @@ class RecordedPush:
     speed_m_s: float | None = None
     push_angle_rad: float | None = None
     samples_dropped: int = 0
+    force: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -231,11 +239,12 @@ def make_push(
     pusher: np.ndarray,
     speed_m_s: float | None = None,
     push_angle_rad: float | None = None,
+    force: np.ndarray | None = None,
 ) -> RecordedPush:
     """A push from its raw rows: `pose` (n, 4) t, x, y, yaw of the recorded frame, `pusher`
-    (m, 3) t, x, y of the pusher's axis, on one clock. Drops out-of-order samples
-    (`increasing`), unwraps the yaw, moves the poses to the outline's centroid and counts time
-    from the log's first sample."""
+    (m, 3) t, x, y of the pusher's axis, optionally `force` (k, 3) t, fx, fy on the pusher, on
+    one clock. Drops out-of-order samples (`increasing`), unwraps the yaw, moves the poses to
+    the outline's centroid and counts time from the log's first pose or pusher sample."""
     pose, pusher = np.asarray(pose, dtype=float), np.asarray(pusher, dtype=float)
     if pose.ndim != 2 or pose.shape[1] < 4 or pusher.ndim != 2 or pusher.shape[1] < 3:
         raise RecordedPushError(path, "poses need columns t, x, y, yaw and the pusher t, x, y")
@@ -250,6 +259,12 @@ def make_push(
     x = pose[:, 1] + np.cos(yaw) * off[0] - np.sin(yaw) * off[1]
     y = pose[:, 2] + np.sin(yaw) * off[0] + np.cos(yaw) * off[1]
     t0 = min(pose[0, 0], pusher[0, 0])
+    if force is not None:
+        force = np.asarray(force, dtype=float)
+        if force.ndim != 2 or force.shape[1] < 3 or not np.all(np.isfinite(force)):
+            raise RecordedPushError(path, "the force needs finite columns t, fx, fy")
+        force = force[increasing(force[:, 0], path, "force"), :3]
+        force = _frozen(np.column_stack([force[:, 0] - t0, force[:, 1:3]]))
     return RecordedPush(
         name=name,
         object_name=obj.name,
@@ -264,6 +279,7 @@ def make_push(
         speed_m_s=speed_m_s,
         push_angle_rad=push_angle_rad,
         samples_dropped=int(dropped),
+        force=force,
     )
 
 
@@ -515,7 +531,8 @@ def _outline_path(h5: Path, root: Path, shape: str) -> Path:
         folder = folder.parent
 
 
-def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The file's object poses, pusher path and, when it has one, `ft_wrench` (t, fx, fy)."""
     try:
         with h5py.File(path, "r") as f:
             missing = [k for k in ("object_pose", "tip_pose") if k not in f]
@@ -523,13 +540,16 @@ def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 raise RecordedPushError(path, f"no {' or '.join(missing)} dataset in the file")
             pose = np.asarray(f["object_pose"], dtype=float)
             tip = np.asarray(f["tip_pose"], dtype=float)
+            wrench = np.asarray(f["ft_wrench"], dtype=float) if "ft_wrench" in f else None
     except (OSError, TypeError, KeyError) as e:
         raise RecordedPushError(path, f"cannot read it as HDF5: {str(e).splitlines()[0]}") from None
     if pose.ndim != 2 or pose.shape[1] < 4:
         raise RecordedPushError(path, f"object_pose has shape {pose.shape}, expected (n, 4)")
     if tip.ndim != 2 or tip.shape[1] < 3:
         raise RecordedPushError(path, f"tip_pose has shape {tip.shape}, expected (n, 3+)")
-    return pose[:, :4], tip[:, :3]
+    if wrench is not None and (wrench.ndim != 2 or wrench.shape[1] < 3):
+        raise RecordedPushError(path, f"ft_wrench has shape {wrench.shape}, expected (n, 3+)")
+    return pose[:, :4], tip[:, :3], None if wrench is None else wrench[:, :3]
 
 
 def _read_dataset(root: Path, files: list[Path]) -> RecordedPushes:
@@ -548,7 +568,7 @@ def _read_dataset(root: Path, files: list[Path]) -> RecordedPushes:
             objects[shape] = _dataset_object(shape, outline_path, meta)
         speed = fields.get("v")
         angle = fields.get("t")
-        pose, tip = _read_h5(path)
+        pose, tip, wrench = _read_h5(path)
         pushes.append(
             make_push(
                 path.stem,
@@ -558,6 +578,7 @@ def _read_dataset(root: Path, files: list[Path]) -> RecordedPushes:
                 tip,
                 speed_m_s=None if speed is None else _number(speed, path, "v") / 1000.0,
                 push_angle_rad=None if angle is None else _number(angle, path, "t", False),
+                force=wrench,
             )
         )
     return RecordedPushes("dataset", objects, tuple(sorted(pushes, key=_push_order)))
@@ -568,6 +589,19 @@ def _push_order(p: RecordedPush) -> tuple[str, str]:
 
 
 # --- the plain layout: <object>/outline.csv, object.yaml, pushes/*.csv ------------------------
+
+
+def csv_columns(path: Path) -> list[str]:
+    """The header row's column names of a CSV file ([] when it has none or cannot be read:
+    `read_csv` says why)."""
+    try:
+        with open(path, newline="") as f:
+            for line in f:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    return [h.strip() for h in next(csv.reader([line]))]
+    except OSError:
+        pass
+    return []
 
 
 def read_csv(path: Path, columns: Sequence[str]) -> np.ndarray:
@@ -646,8 +680,15 @@ def _read_plain(root: Path) -> RecordedPushes:
         if not files:
             raise RecordedPushError(folder / "pushes", "no push logs (*.csv) for this object")
         for path in files:
-            rows = read_csv(path, PLAIN_COLUMNS)
-            pushes.append(make_push(path.stem, obj, path, rows[:, :4], rows[:, [0, 4, 5]]))
+            given = [c for c in FORCE_COLUMNS if c in csv_columns(path)]
+            if given and len(given) < len(FORCE_COLUMNS):
+                pair = " and ".join(FORCE_COLUMNS)
+                raise RecordedPushError(path, f"{given[0]} alone: a force needs {pair}")
+            rows = read_csv(path, PLAIN_COLUMNS + (FORCE_COLUMNS if given else ()))
+            force = rows[:, [0, 6, 7]] if given else None
+            pushes.append(
+                make_push(path.stem, obj, path, rows[:, :4], rows[:, [0, 4, 5]], force=force)
+            )
     return RecordedPushes("plain", objects, tuple(pushes))
 
 
@@ -707,14 +748,15 @@ def write_plain_object(
 
 
 def write_plain_push(path: Path | str, columns: Mapping[str, Sequence[float]]) -> Path:
-    """Write one push of the plain layout: `columns` maps each of `PLAIN_COLUMNS` to its
-    values (one row per time)."""
+    """Write one push of the plain layout: `columns` maps each of `PLAIN_COLUMNS` (and, for a
+    recorded force, `FORCE_COLUMNS`) to its values (one row per time)."""
     path = Path(path)
     missing = [c for c in PLAIN_COLUMNS if c not in columns]
     if missing:
         raise ValueError(f"write_plain_push: missing columns {missing}")
-    data = np.column_stack([np.asarray(columns[c], dtype=float) for c in PLAIN_COLUMNS])
-    lines = [",".join(PLAIN_COLUMNS)] + [",".join(_fmt(v) for v in row) for row in data]
+    names = PLAIN_COLUMNS + tuple(c for c in FORCE_COLUMNS if c in columns)
+    data = np.column_stack([np.asarray(columns[c], dtype=float) for c in names])
+    lines = [",".join(names)] + [",".join(_fmt(v) for v in row) for row in data]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
     return path
