@@ -153,7 +153,7 @@ def real(data: str) -> list[Path]:
     on the recorded pushes under `data`."""
     from comexp.experiment.config import make_simulator
     from comexp.real.estimate import estimate_all
-    from comexp.real.force import SLIDING_DEG, contact_force, friction_by_speed
+    from comexp.real.force import contact_force, friction_by_speed
     from comexp.real.logs import read_pushes
     from comexp.real.replay import (
         SIGN_MIN_TURN_DEG,
@@ -247,10 +247,10 @@ def real(data: str) -> list[Path]:
     planar.close()
     forces = [contact_force(p, rec.objects[p.object_name]) for p in rec.pushes]
     readings = friction_by_speed([f for f in forces if f is not None])
-    rows = [["all" if g.speed_mm_s is None else g.speed_mm_s, g.pushes, g.sliding, g.mu_pusher]
+    rows = [["all" if g.speed_mm_s is None else g.speed_mm_s, g.pushes, g.slid, g.mu_pusher]
             for g in readings]  # fmt: skip
-    columns = ["pusher speed (mm/s)", "pushes with a reading", f"sliding (>= {SLIDING_DEG:g} deg)",
-               "the pusher's friction (median abs tan)"]  # fmt: skip
+    columns = ["pusher speed (mm/s)", "pushes with a reading", "pushes that slid",
+               "the pusher's friction"]  # fmt: skip
     written.append(write_table("real-force", columns, rows, command))
     print(f"fitted friction: {friction}")
     return written

@@ -17,7 +17,14 @@ from test_real_logs import SHARED, needs_shared
 from comexp.cli.real import main
 from comexp.experiment.config import make_simulator
 from comexp.real.estimate import estimate_all
-from comexp.real.logs import make_object, read_pushes, write_plain_object, write_plain_push
+from comexp.real.fit import fit_com
+from comexp.real.logs import (
+    make_object,
+    make_push,
+    read_pushes,
+    write_plain_object,
+    write_plain_push,
+)
 from comexp.real.replay import (
     START_GAP_M,
     Surface,
@@ -289,3 +296,15 @@ def test_the_fit_on_the_shared_pushes(capsys):
     planar.close()
     s = summarise(replayed)
     assert s.failed == 0 and s.turn_error_median_pct > 15.0 and s.position_error_p90_mm > 5.5
+
+
+def test_a_fit_whose_every_candidate_fails_is_an_error(planar):
+    """A push the replay refuses whatever the CoM (its pusher starts 5 mm inside the box,
+    beyond the 3 mm a recorded start may overlap): no fitted CoM, one line."""
+    t = np.linspace(0.0, 1.0, 11)
+    pose = np.column_stack([t, np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)])
+    inside = -0.05 + 0.005 - 0.005  # the disc's edge 5 mm inside the -x face
+    pusher = np.column_stack([t, inside + 0.02 * t, np.zeros_like(t)])
+    push = make_push("deep", _box(), Path("deep"), pose, pusher)
+    with pytest.raises(ValueError, match="box: the fit found no CoM"):
+        fit_com(planar, _box(), [push])

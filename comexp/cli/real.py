@@ -4,9 +4,9 @@
     comexp-real estimate DIR [--estimator NAME] [--format md|csv|json] [--pixel-mm MM]
     comexp-real replay DIR [--backend NAME] [--path recorded|ideal] [--mu-floor X --mu-pusher Y]
                            [--format md|csv|json]
-    comexp-real force DIR [--sliding-deg DEG] [--format md|csv|json]
+    comexp-real force DIR [--sliding-mm-s V] [--format md|csv|json]
 
-Both read every push under DIR (`comexp.real.logs.read_pushes`: the MIT pushing dataset's
+Each reads every push under DIR (`comexp.real.logs.read_pushes`: the MIT pushing dataset's
 layout or the plain CSV layout). `estimate` prints one record per object: its CoM estimated
 from its pushes, the error against the true CoM, and the paper's region from the same pushes.
 `replay` drives each push on a backend (`comexp.real.replay`) and prints one record per push,
@@ -37,7 +37,7 @@ from comexp.real.estimate import (
     check_estimator,
     estimate_all,
 )
-from comexp.real.force import SLIDING_DEG, contact_force, friction_by_speed
+from comexp.real.force import SLIDING_M_S, contact_force, friction_by_speed
 from comexp.real.logs import read_pushes
 from comexp.real.replay import PATHS, Surface, fit_surface, replay_all, summarise, surface_of
 from comexp.sim.simulator import Simulator
@@ -101,11 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("force", help="the recorded contact force and the pusher's friction")
     f.add_argument("dir", metavar="DIR", help="a folder of recorded pushes (either layout)")
     f.add_argument(
-        "--sliding-deg",
+        "--sliding-mm-s",
         type=nonnegative_float,
-        default=SLIDING_DEG,
-        metavar="DEG",
-        help=f"pushes this far from the normal slide on the pusher (default {SLIDING_DEG:g})",
+        default=SLIDING_M_S * 1000.0,
+        metavar="V",
+        help="a sample slides when the pusher moves along the outline at least this fast "
+        f"relative to the object (default {SLIDING_M_S * 1000:g} mm/s)",
     )
     f.add_argument("--format", choices=("md", "csv", "json"), default="md")
     return p
@@ -258,7 +259,9 @@ FORCE_MD = (
     ("samples", "samples"),
     ("force_from_normal_deg", "force from normal (deg)"),
     ("force_n", "force (N)"),
-    ("sliding", "sliding"),
+    ("torque_mean_nmm", "mean torque (N mm)"),
+    ("sliding_samples", "sliding samples"),
+    ("friction", "friction"),
     ("push", "push"),
 )
 
@@ -270,7 +273,8 @@ def _force(args: argparse.Namespace) -> str:
             f"{args.dir}: no push records a force (the dataset's ft_wrench, or the plain "
             "layout's force_x_n and force_y_n columns)"
         )
-    found = [contact_force(p, rec.objects[p.object_name], args.sliding_deg) for p in rec.pushes]
+    sliding = args.sliding_mm_s / 1000.0
+    found = [contact_force(p, rec.objects[p.object_name], sliding) for p in rec.pushes]
     forces = [f for f in found if f is not None]
     if not forces:
         raise ValueError(f"{args.dir}: no push has a force reading while in contact")
@@ -279,12 +283,13 @@ def _force(args: argparse.Namespace) -> str:
         label = "all" if g.speed_mm_s is None else f"  {g.speed_mm_s} mm/s"
         value = "-" if g.mu_pusher is None else f"{g.mu_pusher:.3f}"
         lines.append(
-            f"{label}: {g.pushes} pushes, {g.sliding} sliding, the pusher's friction {value}"
+            f"{label}: {g.pushes} pushes, {g.slid} that slid, the pusher's friction {value}"
         )
     summary = (
         f"contact force read on {len(forces)} of {len(rec.pushes)} pushes; the pusher's "
-        f"friction is the median |tan| of the force's angle from the normal over the pushes "
-        f"at least {args.sliding_deg:g} deg from it\n" + "\n".join(lines)
+        "friction: the median over the pushes that slid of |tan| of the force's angle from the "
+        f"normal while the pusher slid along the outline (at least {args.sliding_mm_s:g} mm/s)\n"
+        + "\n".join(lines)
     )
     return _with_summary([f.record() for f in forces], args.format, summary, FORCE_MD)
 

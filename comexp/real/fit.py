@@ -15,9 +15,10 @@ the CoM (8 neighbours, steps `STEPS_M`) down to the finest step. The friction pa
 nuisance, fitted with the CoM and reported; the inertia is the uniform plate's about the
 candidate CoM, and the mass cancels (friction and inertia both scale with it): an unknown mass
 or height is taken as `DEFAULT_MASS_KG` / `DEFAULT_HEIGHT_M`. What it assumes: the floor
-presses uniformly (the centre of pressure under the CoM, as planar's model does), the pushes
-are slow enough for planar's model (docs/real_robot.md: its replay errors grow with the
-pusher's speed), and one friction pair holds for all the object's pushes.
+presses uniformly (the centre of pressure under the CoM, as planar's model does) and the same
+way on every push, and one friction pair holds for all the object's pushes; where the real
+floor does not (docs/real_robot.md, "What the replay shows"), the fitted CoM is the one that
+best absorbs it. A fit whose every candidate fails every push is refused (ValueError).
 """
 
 from __future__ import annotations
@@ -108,6 +109,10 @@ def fit_com(
             if best is None or value < best[0]:
                 best = (value, com, mu_pusher)
     assert best is not None
+    if best[0] >= FAILED_LOSS * len(pushes):
+        raise ValueError(
+            f"{obj.name}: the fit found no CoM with which planar could replay its pushes"
+        )
     return FitResult(best[1], best[2], MU_FLOOR, best[0], len(cache))
 
 

@@ -259,12 +259,6 @@ def make_push(
     x = pose[:, 1] + np.cos(yaw) * off[0] - np.sin(yaw) * off[1]
     y = pose[:, 2] + np.sin(yaw) * off[0] + np.cos(yaw) * off[1]
     t0 = min(pose[0, 0], pusher[0, 0])
-    if force is not None:
-        force = np.asarray(force, dtype=float)
-        if force.ndim != 2 or force.shape[1] < 3 or not np.all(np.isfinite(force)):
-            raise RecordedPushError(path, "the force needs finite columns t, fx, fy")
-        force = force[increasing(force[:, 0], path, "force"), :3]
-        force = _frozen(np.column_stack([force[:, 0] - t0, force[:, 1:3]]))
     return RecordedPush(
         name=name,
         object_name=obj.name,
@@ -279,14 +273,31 @@ def make_push(
         speed_m_s=speed_m_s,
         push_angle_rad=push_angle_rad,
         samples_dropped=int(dropped),
-        force=force,
+        force=None if force is None else _force_rows(force, t0),
     )
+
+
+def _force_rows(force: np.ndarray, t0: float) -> np.ndarray | None:
+    """The force's rows (t from `t0`, fx, fy), keeping the finite ones whose time increases.
+    The force serves `comexp-real force` only, so a bad stream never refuses the push: what
+    is left of it is kept, None when fewer than two rows are."""
+    force = np.asarray(force, dtype=float)
+    if force.ndim != 2 or force.shape[1] < 3:
+        return None
+    force = force[np.all(np.isfinite(force[:, :3]), axis=1), :3]
+    if len(force) == 0:
+        return None
+    t = force[:, 0]
+    force = force[np.r_[True, t[1:] > np.maximum.accumulate(t)[:-1]]]
+    if len(force) < 2:
+        return None
+    return _frozen(np.column_stack([force[:, 0] - t0, force[:, 1:3]]))
 
 
 # --- the push's geometry: onset, contact, direction, turn -------------------------------------
 
 
-def _signed_gap(outline: np.ndarray, pts: np.ndarray, radius_m: float) -> np.ndarray:
+def signed_gap(outline: np.ndarray, pts: np.ndarray, radius_m: float) -> np.ndarray:
     """Gap between a disc of `radius_m` about each point and the outline (negative: overlap,
     also when the point lies inside the outline)."""
     poly = shapely.Polygon(outline)
@@ -308,7 +319,7 @@ def nearest_on_outline(outline: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, 
     return q[k], np.array([-t[1], t[0]])
 
 
-def _in_object_frame(push: RecordedPush, t: np.ndarray, x: np.ndarray, y: np.ndarray):
+def in_object_frame(push: RecordedPush, t: np.ndarray, x: np.ndarray, y: np.ndarray):
     """World points (x, y) at times t in the object frame at those times (poses interpolated;
     the yaw is unwrapped, so linearly)."""
     px = np.interp(t, push.t_s, push.x_m)
@@ -367,8 +378,8 @@ def push_contact(push: RecordedPush, obj: RecordedObject) -> PushContact:
     outline = obj.outline_m
     radius = obj.pusher_radius_m or 0.0
     t_start, t_end, speed = _pusher_span(push)
-    tips = _in_object_frame(push, push.pusher_t_s, push.pusher_x_m, push.pusher_y_m)
-    gaps = _signed_gap(outline, tips, radius)
+    tips = in_object_frame(push, push.pusher_t_s, push.pusher_x_m, push.pusher_y_m)
+    gaps = signed_gap(outline, tips, radius)
     common = dict(
         turn_deg=math.degrees(float(push.yaw_rad[-1] - push.yaw_rad[0])),
         t_start_s=t_start,
@@ -387,7 +398,7 @@ def push_contact(push: RecordedPush, obj: RecordedObject) -> PushContact:
             np.interp(t_on, push.pusher_t_s, push.pusher_y_m),
         ]
     )
-    tip = _in_object_frame(push, np.array([t_on]), tip_world[:1], tip_world[1:])[0]
+    tip = in_object_frame(push, np.array([t_on]), tip_world[:1], tip_world[1:])[0]
     contact, normal = nearest_on_outline(outline, tip)
     yaw = float(push.yaw_rad[i])
     d = _travel_direction(push, t_on, speed)
@@ -405,7 +416,7 @@ def push_contact(push: RecordedPush, obj: RecordedObject) -> PushContact:
         normal=_frozen(normal),
         direction=_frozen(direction),
         angle_to_normal_rad=angle,
-        contact_gap_m=float(_signed_gap(outline, tip[None], radius)[0]),
+        contact_gap_m=float(signed_gap(outline, tip[None], radius)[0]),
         **common,
     )
 
@@ -547,9 +558,7 @@ def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         raise RecordedPushError(path, f"object_pose has shape {pose.shape}, expected (n, 4)")
     if tip.ndim != 2 or tip.shape[1] < 3:
         raise RecordedPushError(path, f"tip_pose has shape {tip.shape}, expected (n, 3+)")
-    if wrench is not None and (wrench.ndim != 2 or wrench.shape[1] < 3):
-        raise RecordedPushError(path, f"ft_wrench has shape {wrench.shape}, expected (n, 3+)")
-    return pose[:, :4], tip[:, :3], None if wrench is None else wrench[:, :3]
+    return pose[:, :4], tip[:, :3], wrench  # a malformed ft_wrench: `_force_rows` drops it
 
 
 def _read_dataset(root: Path, files: list[Path]) -> RecordedPushes:
