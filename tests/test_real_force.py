@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 from test_real_logs import SHARED, needs_shared
@@ -221,3 +222,26 @@ def test_a_bad_force_stream_never_refuses_the_push():
     assert make_push("p", obj, Path("p"), pose, pusher, force=np.zeros((5, 2))).force is None
     bare = make_push("p", obj, Path("p"), pose, pusher)
     assert np.array_equal(p.x_m, bare.x_m) and bare.force is None
+
+
+def _dataset_push(root: Path, wrench: np.ndarray) -> Path:
+    """The box push as the dataset layout: its outline turned -90 deg on file (the reader
+    turns it back), the force as `ft_wrench`."""
+    (root / "obj").mkdir(parents=True)
+    np.save(root / "obj" / "box_ext.npy", _turn(BOX, -math.pi / 2))
+    cols = _box_push_columns(0.0, 0.0, 0.0)
+    path = root / "motion_surface=abs_shape=box_a=0_v=50_i=0.000_s=0.100_t=0.000.h5"
+    with h5py.File(path, "w") as f:
+        f["object_pose"] = np.column_stack([cols[k] for k in ("t_s", "x_m", "y_m", "yaw_rad")])
+        f["tip_pose"] = np.column_stack([cols[k] for k in ("t_s", "pusher_x_m", "pusher_y_m")])
+        f["ft_wrench"] = wrench
+    return root
+
+
+def test_the_dataset_s_ft_wrench_is_read_and_one_that_is_not_numbers_is_no_force(tmp_path):
+    cols = _box_push_columns(0.0, 10.0, 0.0)
+    wrench = np.column_stack([cols["t_s"], cols["force_x_n"], cols["force_y_n"], cols["t_s"]])
+    (push,) = read_pushes(_dataset_push(tmp_path / "a", wrench)).pushes
+    assert np.array_equal(push.force, wrench[:, :3])
+    (push,) = read_pushes(_dataset_push(tmp_path / "b", np.array([b"a", b"b"]))).pushes
+    assert push.force is None and len(push.t_s) == 201

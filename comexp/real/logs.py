@@ -542,6 +542,15 @@ def _outline_path(h5: Path, root: Path, shape: str) -> Path:
         folder = folder.parent
 
 
+def _optional_array(f: h5py.File, name: str) -> np.ndarray | None:
+    """The dataset `name` as floats, None when the file has none or it is not numbers (an
+    optional stream never refuses the file)."""
+    try:
+        return np.asarray(f[name], dtype=float) if name in f else None
+    except (OSError, TypeError, ValueError):  # h5py: OSError when it cannot convert
+        return None
+
+
 def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The file's object poses, pusher path and, when it has one, `ft_wrench` (t, fx, fy)."""
     try:
@@ -551,7 +560,7 @@ def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
                 raise RecordedPushError(path, f"no {' or '.join(missing)} dataset in the file")
             pose = np.asarray(f["object_pose"], dtype=float)
             tip = np.asarray(f["tip_pose"], dtype=float)
-            wrench = np.asarray(f["ft_wrench"], dtype=float) if "ft_wrench" in f else None
+            wrench = _optional_array(f, "ft_wrench")
     except (OSError, TypeError, KeyError) as e:
         raise RecordedPushError(path, f"cannot read it as HDF5: {str(e).splitlines()[0]}") from None
     if pose.ndim != 2 or pose.shape[1] < 4:
