@@ -150,7 +150,8 @@ def test_one_force_column_alone_is_one_line_naming_the_file(tmp_path, capsys):
     assert main(["force", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert (
-        err == f"comexp-real: error: {path}: force_x_n alone: a force needs force_x_n and force_y_n"
+        err == f"comexp-real: error: {path}: force_x_n without force_y_n: give force_x_n and "
+        "force_y_n together"
     )
 
 

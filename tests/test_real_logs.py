@@ -383,8 +383,12 @@ def test_a_plugin_runs_on_the_shared_pushes_as_its_built_in_twin(capsys):
 @needs_shared
 def test_estimate_prints_markdown_and_csv(capsys):
     assert main(["estimate", str(SHARED), "--pixel-mm", "2"]) == 0
-    md = capsys.readouterr().out.splitlines()
+    captured = capsys.readouterr()
+    md = captured.out.splitlines()
     assert md[0].startswith("| object | estimator | pushes |") and len(md) == 8
+    # a line per object on stderr as it is done (the fit takes tens of seconds an object)
+    progress = captured.err.splitlines()
+    assert len(progress) == 4 and progress[0].startswith("ellip1: paper from 11 pushes, ")
     assert md[-1].startswith("mean error ") and md[-1].endswith("(paper, 48 pushes)")
     assert main(["estimate", str(SHARED), "--pixel-mm", "2", "--format", "csv"]) == 0
     rows = capsys.readouterr().out.splitlines()

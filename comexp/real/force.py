@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from comexp.method.frames import Pose2D
 from comexp.real.logs import (
     RecordedObject,
     RecordedPush,
@@ -124,9 +125,10 @@ def contact_force(
     com = np.zeros(2) if obj.true_com_m is None else np.asarray(obj.true_com_m, dtype=float)
     angles, sizes, torques, slid = [], [], [], []
     for k in idx:
-        c, s = math.cos(yaw[k]), math.sin(yaw[k])
+        pose = Pose2D(float(ox[k]), float(oy[k]), float(yaw[k]))
         q, inward = nearest_on_outline(obj.outline_m, local[k])
-        n = np.array([c * inward[0] - s * inward[1], s * inward[0] + c * inward[1]])
+        point, centre = pose.to_world(np.array([q, com]))  # where the force acts, the CoM
+        n = pose.to_world(inward) - pose.to_world(np.zeros(2))  # the normal, turned
         f = on_object[k]
         along = float(n @ f)
         if along <= 0.0:
@@ -134,12 +136,10 @@ def contact_force(
         across = float(n[0] * f[1] - n[1] * f[0])
         angles.append(math.degrees(math.atan2(across, along)))
         sizes.append(float(np.hypot(*f)))
-        # where the force acts (world), from the CoM, and the object's material point there
-        point = np.array([c * q[0] - s * q[1] + ox[k], s * q[0] + c * q[1] + oy[k]])
-        arm = point - np.array([c * com[0] - s * com[1] + ox[k], s * com[0] + c * com[1] + oy[k]])
+        arm = point - centre
         torques.append(float(arm[0] * f[1] - arm[1] * f[0]) * 1000.0)
         r = point - np.array([ox[k], oy[k]])
-        material = vo[k] + w[k] * np.array([-r[1], r[0]])
+        material = vo[k] + w[k] * np.array([-r[1], r[0]])  # the object's point under the contact
         tangent = np.array([-n[1], n[0]])
         speed = float(np.hypot(*vp[k]))
         if abs(float((vp[k] - material) @ tangent)) >= max(sliding_m_s, SLIDING_SHARE * speed):

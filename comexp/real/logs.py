@@ -609,23 +609,11 @@ def _push_order(p: RecordedPush) -> tuple[str, str]:
 # --- the plain layout: <object>/outline.csv, object.yaml, pushes/*.csv ------------------------
 
 
-def csv_columns(path: Path) -> list[str]:
-    """The header row's column names of a CSV file ([] when it has none or cannot be read:
-    `read_csv` says why)."""
-    try:
-        with open(path, newline="") as f:
-            for line in f:
-                if line.strip() and not line.lstrip().startswith("#"):
-                    return [h.strip() for h in next(csv.reader([line]))]
-    except OSError:
-        pass
-    return []
-
-
-def read_csv(path: Path, columns: Sequence[str]) -> np.ndarray:
-    """The named columns of a CSV file with a header row, as (n, len(columns)) floats (other
-    columns ignored; lines starting with # skipped). Missing columns, a value that is not a
-    finite number, or no rows: RecordedPushError."""
+def read_csv(path: Path, columns: Sequence[str], optional: Sequence[str] = ()) -> np.ndarray:
+    """The named columns of a CSV file with a header row, as (n, k) floats (other columns
+    ignored; lines starting with # skipped), followed by the `optional` ones when the header
+    has them: all of them or none. Missing columns, some optional ones without the others, a
+    value that is not a finite number, or no rows: RecordedPushError."""
     try:
         with open(path, newline="") as f:
             lines = [ln for ln in f if ln.strip() and not ln.lstrip().startswith("#")]
@@ -642,6 +630,13 @@ def read_csv(path: Path, columns: Sequence[str]) -> np.ndarray:
         raise RecordedPushError(
             path, f"missing columns: {', '.join(missing)} (has: {', '.join(header)})"
         )
+    given = [c for c in optional if c in header]
+    if given and len(given) < len(optional):
+        absent = [c for c in optional if c not in header]
+        raise RecordedPushError(
+            path, f"{given[0]} without {absent[0]}: give {' and '.join(optional)} together"
+        )
+    columns = tuple(columns) + (tuple(optional) if given else ())
     idx = [header.index(c) for c in columns]
     out = np.empty((len(rows) - 1, len(columns)))
     for r, row in enumerate(rows[1:]):
@@ -698,12 +693,8 @@ def _read_plain(root: Path) -> RecordedPushes:
         if not files:
             raise RecordedPushError(folder / "pushes", "no push logs (*.csv) for this object")
         for path in files:
-            given = [c for c in FORCE_COLUMNS if c in csv_columns(path)]
-            if given and len(given) < len(FORCE_COLUMNS):
-                pair = " and ".join(FORCE_COLUMNS)
-                raise RecordedPushError(path, f"{given[0]} alone: a force needs {pair}")
-            rows = read_csv(path, PLAIN_COLUMNS + (FORCE_COLUMNS if given else ()))
-            force = rows[:, [0, 6, 7]] if given else None
+            rows = read_csv(path, PLAIN_COLUMNS, optional=FORCE_COLUMNS)
+            force = rows[:, [0, 6, 7]] if rows.shape[1] > len(PLAIN_COLUMNS) else None
             pushes.append(
                 make_push(path.stem, obj, path, rows[:, :4], rows[:, [0, 4, 5]], force=force)
             )
