@@ -9,6 +9,8 @@ docs' generated blocks from it.
         --db results/mujoco.db                                # the study's means per backend
     .venv/bin/python bench/docs_tables.py real --data ../shared/data/mit-push-train
                                                               # docs/real_robot.md's tables
+    .venv/bin/python bench/docs_tables.py methods --db results/fit.db --db results/motion.db
+                                                              # estimators paired, per condition
 
 A generated block in README.md or docs/*.md is
 
@@ -147,6 +149,49 @@ def claims(dbs: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
     return columns, out
 
 
+# what pairs two estimators' episodes: the same scene under the same condition
+PAIR_KEY = ("backend", "floor", "speed_cm_s", "object", "com_index", "izz_scale")
+PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
+
+
+def methods(dbs: Sequence[str], baseline: str = "motion") -> Path:
+    """`fit-methods`: each estimator's mean error per backend and condition (floor, speed) over
+    the databases' episodes, and its paired difference from `baseline` on the same episodes
+    (mean and 95% interval), with the mean wall time per episode."""
+    cols = ["status", "error_cm", "wall_s", "estimator", *PAIR_KEY]
+    found: dict[tuple[str, str, float, str], dict[tuple, tuple[float, float]]] = {}
+    for url in dbs:
+        with ResultsDB(url, readonly=True) as db:
+            for r in db.episodes(columns=cols):
+                e = ok_error(r)
+                if e is None:
+                    continue
+                method = json.loads(r["estimator"])["method"]
+                cond = (r["backend"], r["floor"], float(r["speed_cm_s"]), method)
+                found.setdefault(cond, {})[tuple(r[k] for k in PAIR_KEY)] = (e, r["wall_s"])
+    out = []
+    for (backend, fl, sp, method), eps in sorted(
+        found.items(), key=lambda kv: (kv[0][0], kv[0][1], -kv[0][2], kv[0][3])
+    ):
+        errs = np.array([e for e, _ in eps.values()])
+        walls = np.array([w for _, w in eps.values()])
+        base = found.get((backend, fl, sp, baseline), {})
+        paired = [eps[k][0] - base[k][0] for k in eps if k in base]
+        diff = interval = None
+        if method != baseline and len(paired) > 1:
+            d = np.array(paired)
+            half = 1.96 * d.std(ddof=1) / np.sqrt(len(d))
+            diff, interval = float(d.mean()), f"[{d.mean() - half:.3f}, {d.mean() + half:.3f}]"
+        out.append(
+            [backend, f"{fl}, {sp:g} cm/s", method, len(errs), float(errs.mean()), diff,
+             interval, 1e3 * float(walls.mean())]
+        )  # fmt: skip
+    columns = ["backend", "floor, speed", "estimator", "episodes", "error (cm)",
+               f"- {baseline} (cm)", "95% interval", "ms / episode"]  # fmt: skip
+    command = "python bench/docs_tables.py methods " + " ".join(f"--db {d}" for d in dbs)
+    return write_table("fit-methods", columns, out, command)
+
+
 def real(data: str) -> list[Path]:
     """docs/real_robot.md's tables: `comexp-real estimate` with each built-in estimator, and
     `comexp-real replay` (the friction fitted on planar, as the command does) on every backend,
@@ -263,11 +308,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub.add_parser("knobs", help="the knob table, from the structured config")
     res = sub.add_parser("results", help="the study's means, from its databases")
     res.add_argument("--db", action="append", required=True)
+    me = sub.add_parser("methods", help="estimators paired per condition, from databases")
+    me.add_argument("--db", action="append", required=True)
     rr = sub.add_parser("real", help="docs/real_robot.md's tables, from recorded pushes")
     rr.add_argument("--data", default="../shared/data/mit-push-train")
     args = ap.parse_args(argv)
     if args.command == "results":
         print(results(args.db))
+    if args.command == "methods":
+        print(methods(args.db))
     if args.command == "real":
         for path in real(args.data):
             print(path)

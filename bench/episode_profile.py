@@ -34,6 +34,11 @@ decisions) as JSON, to check that an optimisation leaves results unchanged. To c
 episodes against another version of the code (perception, estimator, a backend), run
 bench/compare_checkouts.py: each checkout in its own process and venv, nothing swapped in.
 
+`--estimators paper,fit` times the same episodes with each estimator (`estimator.method`),
+alternating per episode in one process, after a warm-up pass of each: the cost of an estimator
+as a ratio to the first one's episodes, and their mean errors; `--json` writes the table as
+docs/data/NAME.json for the docs (`bench/docs_tables.py render`).
+
 `--cprofile TOP` profiles the same episodes (CPU clock): the TOP functions by cumulative and
 by own time. `--still-jumps` runs an engine's episodes with its still steps jumped and with
 every step stepped (a subclass with `still_jumps = None`), alternating, in one process.
@@ -62,6 +67,7 @@ from common import (
     strided,
     use_one_cpu,
     warm_up,
+    write_table,
 )
 
 from comexp.episode.task import EpisodeResult, EpisodeSpec
@@ -417,6 +423,58 @@ def _still_jumps_lines(
     ]
 
 
+def estimator_costs(
+    backend: str, n: int, speed: float, floor: str, methods: Sequence[str]
+) -> tuple[list[str], list[list[Any]]]:
+    """The same strided episodes with each estimator, alternating per episode: per method the
+    mean and median wall ms per episode, the ratio of its mean to the first method's, and its
+    mean error (cm) over the episodes every method finished."""
+    from dataclasses import replace
+
+    from comexp.episode.loop import run_episode
+
+    specs = strided(job_specs(backend, floor, speed), n)
+    sim = bench_simulator(job_simulator(backend, floor, speed))
+    walls: dict[str, list[float]] = {m: [] for m in methods}
+    errors: dict[str, list[float | None]] = {m: [] for m in methods}
+    try:
+        for m in methods:  # compile and warm each estimator's code (Numba, caches)
+            run_episode(replace(specs[0], estimator=replace(specs[0].estimator, method=m)), sim)
+        for spec in specs:
+            for m in methods:
+                s = replace(spec, estimator=replace(spec.estimator, method=m))
+                t0 = time.perf_counter()
+                r = run_episode(s, sim)
+                walls[m].append(time.perf_counter() - t0)
+                errors[m].append(r.error_cm if r.status == "ok" else None)
+    finally:
+        sim.close()
+    both = [i for i in range(len(specs)) if all(errors[m][i] is not None for m in methods)]
+    base = statistics.fmean(walls[methods[0]])
+    rows = [
+        [
+            f"{backend}, {floor}, {speed:g} cm/s",
+            m,
+            len(specs),
+            1e3 * statistics.fmean(walls[m]),
+            1e3 * statistics.median(walls[m]),
+            statistics.fmean(walls[m]) / base,
+            statistics.fmean(errors[m][i] for i in both) if both else None,
+        ]
+        for m in methods
+    ]
+    columns = [
+        "condition",
+        "estimator",
+        "episodes",
+        "mean ms",
+        "median ms",
+        "cost ratio",
+        "error cm",
+    ]
+    return columns, rows
+
+
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--backend", choices=("planar", "pybullet", "mujoco"), default="pybullet")
@@ -440,6 +498,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--cprofile", type=int, metavar="TOP", help="cProfile the episodes: the TOP functions"
     )
     ap.add_argument(
+        "--estimators",
+        help="comma-separated methods: the same episodes with each, alternating (cost ratios)",
+    )
+    ap.add_argument("--json", metavar="NAME", help="--estimators: write docs/data/NAME.json")
+    ap.add_argument(
         "--still-jumps",
         action="store_true",
         help="engines: CPU with the still steps jumped against stepped, alternating",
@@ -452,6 +515,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     use_one_cpu()
     overrides = [f"backend.floor_friction={a.floor_friction}"] if a.floor_friction else []
     overrides += [f"camera.renderer={a.renderer}"] if a.renderer else []
+    if a.estimators:
+        methods = [m.strip() for m in a.estimators.split(",") if m.strip()]
+        with engine_stdout_silenced(not a.engine_output):
+            columns, rows = estimator_costs(a.backend, a.episodes, a.speed, a.floor, methods)
+        print(" | ".join(columns))
+        for row in rows:
+            print(" | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row))
+        if a.json:
+            cmd = "python bench/episode_profile.py " + " ".join(argv or sys.argv[1:])
+            print(write_table(a.json, columns, rows, cmd))
+        return 0
     with engine_stdout_silenced(not a.engine_output):
         if a.still_jumps:
             lines = still_jumps_ab(a.backend, a.episodes, a.speed, a.floor)

@@ -18,7 +18,11 @@ from comexp.episode.task import EpisodeSpec
 from comexp.experiment.config import ExperimentConfig, estimator_settings, simulator_spec
 from comexp.experiment.objects import com_points
 from comexp.method.estimator import EstimatorSettings
+from comexp.method.fit_estimator import FIT_VERSION
 from comexp.method.motion_estimator import MOTION_VERSION
+
+# the model revisions pinned in the episode key (`EstimatorSettings.motion_version`)
+PINNED_VERSIONS = {"motion": MOTION_VERSION, "fit": FIT_VERSION}
 
 
 class ObjectLike(Protocol):
@@ -55,8 +59,8 @@ def expand_grid(
     """All episodes of one job. `objects` maps names to object definitions (in grid order when
     `cfg.grid.objects` is None); `com_fn(obj, n, base_seed=, margin_cm=)` gives the CoMs."""
     est = estimator if estimator is not None else estimator_settings(cfg.estimator)
-    if est.method == "motion" and not est.motion_version:
-        est = replace(est, motion_version=MOTION_VERSION)
+    if est.method in PINNED_VERSIONS and not est.motion_version:
+        est = replace(est, motion_version=PINNED_VERSIONS[est.method])
     sim = simulator_spec(cfg.backend, cfg.camera)
     physics = physics_identity(sim.name, sim.target, options=dict(sim.options))
     names = list(cfg.grid.objects) if cfg.grid.objects is not None else sorted(objects)

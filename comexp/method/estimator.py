@@ -51,7 +51,7 @@ from comexp.method.observation import hull_region
 ROTATION_SOURCES = ("vision", "oracle")
 D_METRICS = ("sine", "distance_px")
 # the built-in methods (`comexp.method.estimators.BUILT_IN` has their classes)
-METHODS = ("paper", "magnitude", "motion")
+METHODS = ("paper", "magnitude", "motion", "fit")
 # Saturation lengths tried by the magnitude fit, as multiples beta of the uniform-density
 # squared radius of gyration rho0^2(G) of the initial region about G: f(l) = l / (1 + l^2 /
 # (beta rho0^2)); inf = the linear model. Profiled (the best per candidate G), since Izz, hence
@@ -138,7 +138,8 @@ class EstimatorSettings:
         default="paper",
         metadata={
             "help": "paper | magnitude (also fits how much each push turns) | motion (reads "
-            "the tracked path) | a plug-in module:Class (docs/your_estimator.md)"
+            "the tracked path) | fit (also a quasi-static model of slow pushes' paths) | a "
+            "plug-in module:Class (docs/your_estimator.md)"
         },
     )
     mag_noise_deg: float = field(
@@ -156,14 +157,15 @@ class EstimatorSettings:
             "action; false: along the push, as the paper"
         },
     )
-    # motion: the model's revision (`comexp.method.motion_estimator.MOTION_VERSION`), pinned by
-    # the grid for motion jobs so that a database is never resumed across revisions; part of
-    # the episode key only when set ("" = not pinned: other methods, older databases)
+    # motion and fit: the model's revision (`comexp.method.motion_estimator.MOTION_VERSION`,
+    # `comexp.method.fit_estimator.FIT_VERSION`), pinned by the grid for their jobs so that a
+    # database is never resumed across revisions; part of the episode key only when set ("" =
+    # not pinned: other methods, older databases)
     motion_version: str = field(
         default="",
         metadata={
             "key_omit_default": True,
-            "help": "motion: the model's revision in the episode key; empty: the current one",
+            "help": "motion, fit: the model's revision in the episode key; empty: the current one",
         },
     )
 

@@ -17,14 +17,17 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from comexp.method.estimator import METHODS, ComEstimator, EstimatorSettings, is_plugin
+from comexp.method.fit_estimator import FitEstimator
 from comexp.method.motion_estimator import MotionEstimator
 
 # the built-in methods' classes: paper and magnitude are Algorithms 1 and 2 (magnitude also fits
-# how much each push turns), motion reads the tracked path of each push
+# how much each push turns), motion reads the tracked path of each push, fit also reads the
+# slow pushes' paths with a quasi-static forward model
 BUILT_IN: dict[str, type] = {
     "paper": ComEstimator,
     "magnitude": ComEstimator,
     "motion": MotionEstimator,
+    "fit": FitEstimator,
 }
 assert set(BUILT_IN) == set(METHODS)
 

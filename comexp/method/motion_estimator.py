@@ -784,6 +784,13 @@ def estimate_com_motion(
     for `estimate_com_world`; each push is mapped into the object frame with its own pose
     before the push, and its path is read relative to that pose."""
 
+    region0 = region_from_outline(centred_outline(outline_m), pixel_m)
+    est = MotionEstimator(region0, np.zeros((0, 2)), np.zeros((0, 2)), pixel_m, motion=motion)
+    return estimate_from_paths(est, pushes)
+
+
+def centred_outline(outline_m: np.ndarray) -> np.ndarray:
+    """`outline_m` as an array, or ValueError if it is not centred on its area centroid."""
     outline = np.asarray(outline_m, dtype=float)
     c = centroid(outline)
     if np.hypot(*c) > OUTLINE_CENTRED_TOL_M:
@@ -791,11 +798,15 @@ def estimate_com_motion(
             f"outline_m: its centroid is at ({c[0]:.4f}, {c[1]:.4f}) m, not at the origin: "
             "pass outline_m - centroid, and poses of the centroid"
         )
+    return outline
+
+
+def estimate_from_paths(est: MotionEstimator, pushes: list[MotionPush] | tuple[MotionPush, ...]):
+    """`est` (a `MotionEstimator`, or one that extends it, built on the object frame's region)
+    fed the observed pushes in order: the `WorldEstimate` of `estimate_com_motion`."""
     pushes = list(pushes)
     if not pushes:
-        raise ValueError("estimate_com_motion needs at least one push (its pose fixes the frame)")
-    region0 = region_from_outline(outline, pixel_m)
-    est = MotionEstimator(region0, np.zeros((0, 2)), np.zeros((0, 2)), pixel_m, motion=motion)
+        raise ValueError("an estimate needs at least one push (its pose fixes the frame)")
     local = []
     for push in pushes:
         P, N = push.in_object_frame()

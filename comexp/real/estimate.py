@@ -1,7 +1,7 @@
 """Every object's CoM from its recorded pushes, with any estimator: the paper's
 (`estimate_com_world`), `magnitude` (the same with `EstimatorSettings(method="magnitude")`),
 `motion` (`estimate_com_motion`, which also reads the tracked path), `fit` (the CoM whose
-replays on planar reproduce the pushes: `comexp.real.fit`; recorded pushes only) or a plug-in
+replays on planar reproduce the pushes: `comexp.real.fit`, the referee as its model) or a plug-in
 `module:Class` (the `Estimator` protocol of `comexp.method.estimator`, fed the observed pushes).
 
 Each push gives (`comexp.real.logs.push_contact`): the contact where the object first moves
@@ -43,7 +43,9 @@ from comexp.sim.simulator import Simulator
 # The grid spacing of the CoM region (the paper's pixel): 1 mm, finer than the recorded
 # geometry's ~1.5 mm uncertainty. It also sets the paper's band (C_bw_px = 10 pixels = 1 cm).
 DEFAULT_PIXEL_M = 0.001
-# estimators of recorded pushes only: `fit` needs the pusher's recorded path and a simulator
+# estimators that read recorded pushes their own way: `fit` replays them on planar with the
+# recorded pusher path (`comexp.real.fit`), the referee itself as its forward model where an
+# episode's `estimator.method=fit` uses its quasi-static reduction (docs/method.md)
 RECORDED_ONLY = ("fit",)
 
 RECORD_FIELDS = (
@@ -130,7 +132,7 @@ def check_estimator(name: str) -> str:
     if name in RECORDED_ONLY:
         return name
     if name not in METHODS and not is_plugin(name):
-        known = ", ".join((*METHODS, *RECORDED_ONLY))
+        known = ", ".join(dict.fromkeys((*METHODS, *RECORDED_ONLY)))
         raise ValueError(f"unknown estimator {name!r}: one of {known} or module:Class")
     EstimatorSettings(method=name)  # imports and checks a plug-in: ValueError in one line
     return name

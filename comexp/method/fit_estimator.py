@@ -1,0 +1,224 @@
+"""`estimator.method=fit`: the CoM that makes a forward model reproduce the tracked paths.
+
+`motion`'s posterior (the impulse relations of fast pushes, the slides, the net turns' signs and
+sizes) times, for every slow push (the pusher at most `FitSettings.max_speed_m_s`), the
+likelihood of each tracked interval under the quasi-static pushing model
+(`comexp.method.quasi_static`): the object's motion predicted from the pose at the interval's
+middle, the contact that pose gives, and a hypothesis (CoM, floor, pusher friction, turn gain).
+The nuisance hypotheses are marginalised: the floor isotropic, or anisotropic with the
+ratio `floor_ratios` across an axis at one of `floor_angles` directions; the pusher's friction on
+`mu_p_grid`; the turn's gain on `turn_gains` (an object slow to spin up, Izz x 10 on a slippery
+floor, turns less than the inertia-free model says). Floors whose evidence falls
+`prune_log` below the best are no longer evaluated.
+
+The quasi-static likelihood is computed on a grid `grid_px` pixels apart and carried to
+`motion`'s finer grid by nearest point; its weight `weight` < 1 tempers intervals that share
+their frames' errors. Frames and units as `ComEstimator`'s; docs/method.md, "Beyond the paper:
+`estimator.method=fit`", has the model, its assumptions and where it fails.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import logsumexp
+
+from comexp.method.estimator import EstimatorSettings, region_from_outline
+from comexp.method.motion_estimator import (
+    MOTION_VERSION,
+    MotionEstimator,
+    MotionPush,
+    MotionSettings,
+    centred_outline,
+    estimate_from_paths,
+)
+from comexp.method.quasi_static import (
+    add_step_loglik,
+    contact_steps,
+    footprint_samples,
+    pressure_weights,
+    step_array,
+)
+
+# The model's revision (with motion's, whose posterior it multiplies): pinned in fit episodes'
+# keys like motion's (`EstimatorSettings.motion_version`)
+FIT_VERSION = f"fit-1+{MOTION_VERSION}"
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Knobs of the fit estimator (docs/method.md, "`estimator.method=fit`")."""
+
+    max_speed_m_s: float = 0.1  # pushes at most this fast are read as quasi-static
+    max_gap_m: float = 0.002  # an interval counts while the pusher is this close to the outline
+    rel_model: float = 0.2  # relative model error of an interval's predicted motion
+    weight: float = 1.0  # the quasi-static log-likelihood's weight
+    floor_ratios: tuple[float, ...] = (3.0, 10.0)
+    floor_angles: int = 12
+    mu_p_grid: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
+    turn_gains: tuple[float, ...] = (0.35, 0.6, 1.0)
+    prune_log: float = 12.0
+    # a push's summed log-likelihood can make no hypothesis less likely than the push's best
+    # by more than this (a push the model misreads cannot rule the true CoM out)
+    push_max_log: float = 10.0
+    footprint_samples: int = 64  # where the floor presses: the limit surface's samples
+    grid_px: int = 2  # the model's CoM grid: every this many pixels of the region
+
+
+class FitEstimator(MotionEstimator):
+    """`estimator.method=fit` (module docstring). Needs the outline and the pusher's radius
+    (an episode gives both); without them it is `motion`."""
+
+    def __init__(
+        self,
+        region_m: np.ndarray,
+        contacts_m: np.ndarray,
+        normals: np.ndarray,
+        pixel_m: float,
+        settings: EstimatorSettings | None = None,
+        outline_m: np.ndarray | None = None,
+        pusher_radius_m: float | None = None,
+        motion: MotionSettings | None = None,
+        fit: FitSettings | None = None,
+    ) -> None:
+        super().__init__(
+            region_m,
+            contacts_m,
+            normals,
+            pixel_m,
+            settings or EstimatorSettings(method="fit"),
+            outline_m=outline_m,
+            pusher_radius_m=pusher_radius_m,
+            motion=motion,
+        )
+        fs = self.fit = fit or FitSettings()
+        self.outline = None if outline_m is None else np.asarray(outline_m, dtype=float)
+        self.pusher_radius_m = pusher_radius_m
+        self.coarse = _lattice(self.footprint, self.pixel_m, fs.grid_px)
+        self.samples = (
+            footprint_samples(self.outline, fs.footprint_samples)
+            if self.outline is not None
+            else self.footprint
+        )
+        self.pressure = pressure_weights(self.samples, self.coarse)
+        angles = [math.pi * k / fs.floor_angles for k in range(fs.floor_angles)]
+        floors = [(1.0, 0.0)] + [(r, a) for r in fs.floor_ratios for a in angles]
+        self.ratios = np.array([r for r, _ in floors])
+        self.axes = np.array([a for _, a in floors])
+        self.active = np.ones(len(floors), dtype=np.bool_)
+        self.mu_p = np.asarray(fs.mu_p_grid, dtype=float)
+        self.gains = np.asarray(fs.turn_gains, dtype=float)
+        self.loglik = np.zeros((len(self.coarse), len(floors), len(self.mu_p), len(self.gains)))
+        self.steps_used = 0
+        self.to_coarse = cKDTree(self.coarse).query(self.points)[1]
+        ms = self.motion
+        self.noise = np.array(
+            [
+                math.sqrt(2) * ms.sigma_move_m,  # an interval's two frames' errors
+                math.sqrt(2) * math.radians(ms.sigma_turn_deg),
+                fs.rel_model,
+            ]
+        )
+
+    def observe(
+        self,
+        contact_m: np.ndarray,
+        direction: np.ndarray,
+        rotation_deg: float,
+        line_direction: np.ndarray | None = None,
+    ) -> str:
+        """`motion`'s update, then the push's quasi-static intervals (a slow push's)."""
+        path = self._path
+        label = super().observe(contact_m, direction, rotation_deg, line_direction)
+        fs = self.fit
+        if (
+            path is None
+            or self.outline is None
+            or self.pusher_radius_m is None
+            or path.t_end_s is None
+            or not path.speed_m_s <= fs.max_speed_m_s
+        ):
+            return label
+        steps = contact_steps(
+            path.pose_before,
+            path.t_s,
+            path.poses,
+            np.asarray(contact_m, dtype=float),
+            np.asarray(direction, dtype=float),
+            path.t_contact_s,
+            path.t_end_s,
+            path.speed_m_s,
+            self.outline,
+            self.pusher_radius_m,
+            fs.max_gap_m,
+        )
+        push_ll = np.zeros_like(self.loglik)
+        for step in steps:
+            add_step_loglik(
+                self.coarse,
+                self.samples,
+                self.pressure,
+                self.ratios,
+                self.axes,
+                self.mu_p,
+                self.gains,
+                self.active,
+                step_array(step),
+                self.noise,
+                push_ll,
+            )
+        if steps:
+            idx = np.flatnonzero(self.active)
+            best = push_ll[:, idx].max()
+            self.loglik += np.maximum(push_ll, best - fs.push_max_log)
+        self.steps_used += len(steps)
+        if self.steps_used:
+            self._prune()
+            n = len(self.coarse)
+            qs = logsumexp(self.loglik[:, self.active].reshape(n, -1), axis=1)
+            ll = np.log(self.weights + 1e-300) + fs.weight * qs[self.to_coarse]
+            p = np.exp(ll - ll.max())
+            self.weights = p / p.sum()
+        return f"{label}-qs" if steps and len(label) <= 13 else label
+
+    def _prune(self) -> None:
+        """Stop evaluating floors whose evidence is `prune_log` below the best one's."""
+        n = len(self.coarse)
+        ev = np.full(len(self.active), -np.inf)
+        idx = np.flatnonzero(self.active)
+        ev[idx] = logsumexp(
+            self.loglik[:, idx].transpose(1, 0, 2, 3).reshape(len(idx), n, -1), axis=(1, 2)
+        )
+        self.active &= ev >= ev.max() - self.fit.prune_log
+
+
+def estimate_com_fit(
+    outline_m: np.ndarray,
+    pushes: list[MotionPush] | tuple[MotionPush, ...],
+    pixel_m: float,
+    pusher_radius_m: float,
+    fit: FitSettings | None = None,
+):
+    """The fit estimator on a robot's observed pushes (`MotionPush`es, world frame, as for
+    `estimate_com_motion`, whose `WorldEstimate` it returns): `outline_m` centred on its area
+    centroid; each push's `speed_m_s` and `t_end_s` tell the model how the pusher drove (a push
+    without them, or faster than `FitSettings.max_speed_m_s`, adds `motion`'s terms only)."""
+    outline = centred_outline(outline_m)
+    region0 = region_from_outline(outline, pixel_m)
+    none = np.zeros((0, 2))
+    est = FitEstimator(
+        region0, none, none, pixel_m, outline_m=outline, pusher_radius_m=pusher_radius_m, fit=fit
+    )
+    return estimate_from_paths(est, pushes)
+
+
+def _lattice(region: np.ndarray, pixel_m: float, every: int) -> np.ndarray:
+    """The region's points (a pixel grid) on every `every`-th row and column."""
+    if every <= 1 or len(region) == 0:
+        return region
+    ij = np.rint((region - region.min(0)) / pixel_m).astype(int)
+    keep = (ij % every == 0).all(1)
+    return region[keep] if keep.any() else region

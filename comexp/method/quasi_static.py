@@ -1,0 +1,322 @@
+"""The quasi-static pushing model the `fit` estimator reads slow pushes with: a limit surface
+(Lynch, Maekawa and Tanie 1992) built from the footprint, the floor's anisotropy and a candidate
+CoM, and the pusher's point contact with Coulomb friction (stick or slide, Mason's motion cone).
+
+Why this model: in a slow push the object's inertia plays no part, so its motion at every
+instant is fixed by where the pusher touches, how the floor's friction resists a twist, and
+the pusher's friction cone; the CoM enters through the floor's pressure, centred under it. The
+friction's scale (mu g m) and Izz cancel: only the CoM, the floor's anisotropy (the ratio of its
+two friction coefficients and the angle of its axes) and the pusher's friction are left, the
+hypotheses this module evaluates side by side. Each tracked interval of a push is predicted on
+its own, from the observed pose at its middle (the contact's geometry is then the same for every
+hypothesis), so no prediction error accumulates along a push.
+
+The limit surface is the ellipsoid (f_x / a)^2 + (f_y / b)^2 + (m / c)^2 = 1 in the floor's axes,
+a = mu_1, b = mu_2 (normal force 1), c = the largest friction moment about the CoM,
+sum_i w_i |A (z x r_i)| with the pressure w linear over the footprint and centred at the CoM
+(the planar model's uniform-foundation pressure, without the shift of the forces' heights). A
+twist is the ellipsoid's normal at the pusher's wrench: V = B J^T f, B = diag(1/a^2, 1/b^2,
+1/c^2). With contact velocity J V = M f (M = J B J^T), the pusher sticks when f = M^-1 v_p lies
+in its cone, else slides with f on the cone's edge and the contact's normal velocity matched.
+
+Frames: the estimator's (metres, y up, CCW positive; docs/method.md), floor angles in the world.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from comexp.method.frames import Pose2D
+
+
+@dataclass(frozen=True)
+class ContactStep:
+    """One tracked interval of a push with the pusher driving against the object: the contact
+    point and the inward normal at the interval's middle, the pusher's velocity (m/s), all in
+    the object frame; the object frame's world yaw then (the floor's axes turn against it),
+    how long the pusher drove within the interval, and the observed motion: the frame origin's
+    displacement (object frame at the middle) and the turn."""
+
+    contact: np.ndarray
+    normal: np.ndarray
+    push_velocity: np.ndarray
+    yaw_rad: float
+    drive_s: float
+    d_origin: np.ndarray
+    d_yaw: float
+
+
+def _closest_on_outline(q: np.ndarray, outline: np.ndarray) -> tuple[np.ndarray, float, bool]:
+    """The outline's point closest to q, its distance, and whether q is inside the outline."""
+    a = outline
+    b = np.roll(outline, -1, axis=0)
+    ab = b - a
+    t = np.clip(((q - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-30), 0.0, 1.0)
+    pts = a + t[:, None] * ab
+    d = np.hypot(*(pts - q).T)
+    i = int(np.argmin(d))
+    # even-odd rule for inside
+    ya, yb = a[:, 1], b[:, 1]
+    cross = (ya > q[1]) != (yb > q[1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = a[:, 0] + (q[1] - ya) * (b[:, 0] - a[:, 0]) / (yb - ya)
+    inside = bool(np.count_nonzero(cross & (q[0] < x_at)) % 2)
+    return pts[i], float(d[i]), inside
+
+
+def _between(a: Pose2D, b: Pose2D) -> Pose2D:
+    """The pose halfway between a and b (yaw along the shorter way)."""
+    d = (b.yaw_rad - a.yaw_rad + math.pi) % (2 * math.pi) - math.pi
+    return Pose2D((a.x_m + b.x_m) / 2, (a.y_m + b.y_m) / 2, a.yaw_rad + d / 2)
+
+
+def contact_steps(
+    pose_before: Pose2D,
+    t_s: tuple[float, ...],
+    poses: tuple[Pose2D, ...],
+    contact_m: np.ndarray,
+    direction: np.ndarray,
+    t_contact_s: float,
+    t_end_s: float,
+    speed_m_s: float,
+    outline_m: np.ndarray,
+    pusher_radius_m: float,
+    max_gap_m: float,
+) -> list[ContactStep]:
+    """The intervals between consecutive tracked poses (the pose before the push first) in which
+    the pusher drove with its disc within `max_gap_m` of the outline. The pusher moves along
+    `direction` (object frame at the push's start) at `speed_m_s`, its disc touching `contact_m`
+    at `t_contact_s`, until `t_end_s`; poses are world poses of the object frame."""
+    N = np.asarray(direction, dtype=float)
+    N = N / np.linalg.norm(N)
+    start = pose_before.to_world(np.asarray(contact_m, dtype=float) - pusher_radius_m * N)
+    c0, s0 = math.cos(pose_before.yaw_rad), math.sin(pose_before.yaw_rad)
+    n_world = np.array([c0 * N[0] - s0 * N[1], s0 * N[0] + c0 * N[1]])
+    times = (0.0, *t_s)
+    track = (pose_before, *poses)
+    steps: list[ContactStep] = []
+    yaw_prev = pose_before.yaw_rad
+    unwrapped = [pose_before.yaw_rad]
+    for p in poses:
+        yaw_prev += (p.yaw_rad - yaw_prev + math.pi) % (2 * math.pi) - math.pi
+        unwrapped.append(yaw_prev)
+    for k in range(len(track) - 1):
+        ta, tb = times[k], times[k + 1]
+        lo, hi = max(ta, t_contact_s), min(tb, t_end_s)
+        if hi <= lo:
+            continue
+        mid = _between(track[k], track[k + 1])
+        t_mid = 0.5 * (lo + hi)
+        q = mid.to_object(start + n_world * speed_m_s * (t_mid - t_contact_s))
+        p, dist, inside = _closest_on_outline(q, outline_m)
+        if inside or dist - pusher_radius_m > max_gap_m or dist < 1e-9:
+            continue
+        normal = (p - q) / dist
+        c, s = math.cos(mid.yaw_rad), math.sin(mid.yaw_rad)
+        v_world = n_world * speed_m_s
+        v = np.array([c * v_world[0] + s * v_world[1], -s * v_world[0] + c * v_world[1]])
+        if v @ normal <= 0:
+            continue
+        dxy = np.array([track[k + 1].x_m - track[k].x_m, track[k + 1].y_m - track[k].y_m])
+        d_origin = np.array([c * dxy[0] + s * dxy[1], -s * dxy[0] + c * dxy[1]])
+        steps.append(
+            ContactStep(
+                p, normal, v, mid.yaw_rad, hi - lo, d_origin, unwrapped[k + 1] - unwrapped[k]
+            )
+        )
+    return steps
+
+
+def footprint_samples(outline_m: np.ndarray, n: int = 64) -> np.ndarray:
+    """About `n` points on a regular grid inside the outline (even-odd rule): where the floor
+    presses."""
+    outline = np.asarray(outline_m, dtype=float)
+    lo, hi = outline.min(0), outline.max(0)
+    area = abs(
+        0.5
+        * np.sum(
+            outline[:, 0] * np.roll(outline[:, 1], -1) - np.roll(outline[:, 0], -1) * outline[:, 1]
+        )
+    )
+    h = math.sqrt(area / n)
+    while True:
+        xs = np.arange(lo[0] + h / 2, hi[0], h)
+        ys = np.arange(lo[1] + h / 2, hi[1], h)
+        grid = np.array([(x, y) for y in ys for x in xs])
+        keep = np.array([_closest_on_outline(g, outline)[2] for g in grid])
+        pts = grid[keep]
+        if len(pts) >= n // 2 or h < 1e-4:
+            return pts
+        h *= 0.8
+
+
+def pressure_weights(samples: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """(nG, ns) normal forces of the footprint samples, summing to 1 per candidate: linear over
+    the footprint with its centre at G (a rigid plate on a uniform foundation), clipped at zero
+    (tensionless; G near an edge then carries a slightly outward-biased centre)."""
+    c0 = samples.mean(0)
+    d = samples - c0
+    S = d.T @ d / len(samples)
+    K = np.linalg.solve(S, (np.asarray(G) - c0).T).T  # (nG, 2)
+    w = np.maximum(1.0 + K @ d.T, 0.0)
+    return w / w.sum(1, keepdims=True)
+
+
+@njit(cache=True)
+def _moment(samples, weights, gx, gy, ratio, ca, sa):
+    """The limit surface's c about (gx, gy): the largest friction moment, for a floor with
+    friction 1 along the axis (cos, sin) = (ca, sa) and `ratio` across it (object frame)."""
+    c = 0.0
+    for i in range(samples.shape[0]):
+        rx = samples[i, 0] - gx
+        ry = samples[i, 1] - gy
+        r_par = rx * ca + ry * sa
+        r_perp = -rx * sa + ry * ca
+        c += weights[i] * math.sqrt(r_perp * r_perp + ratio * ratio * r_par * r_par)
+    return c
+
+
+@njit(cache=True)
+def _twist(bxx, byy, bxy, ic2, rx, ry, mu, nx, ny, vx, vy):
+    """The pusher's force (fx, fy) at arm r from the pressure centre, scaled so that the contact
+    moves with the pusher (sticking) or along its normal with it (sliding on the cone's edge),
+    and the twist it drives: (v_x, v_y, omega) of the pressure centre."""
+    mxx = bxx + ic2 * ry * ry
+    myy = byy + ic2 * rx * rx
+    mxy = bxy - ic2 * rx * ry
+    det = mxx * myy - mxy * mxy
+    fx = (myy * vx - mxy * vy) / det
+    fy = (mxx * vy - mxy * vx) / det
+    tx, ty = -ny, nx
+    fn = fx * nx + fy * ny
+    ft = fx * tx + fy * ty
+    if not (fn > 0.0 and abs(ft) <= mu * fn):  # slides: the force on the cone's edge
+        sigma = 1.0 if ft >= 0.0 else -1.0
+        gx = nx + sigma * mu * tx
+        gy = ny + sigma * mu * ty
+        lam = (vx * nx + vy * ny) / ((mxx * gx + mxy * gy) * nx + (mxy * gx + myy * gy) * ny)
+        fx, fy = lam * gx, lam * gy
+    return fx, fy, bxx * fx + bxy * fy, bxy * fx + byy * fy, (rx * fy - ry * fx) * ic2
+
+
+@njit(cache=True)
+def _predict(c, gx, gy, ratio, axis_rad, mu, px, py, nx, ny, vx, vy):
+    """Origin displacement rate and turn rate (per second of driving) for one hypothesis: CoM
+    (gx, gy) with limit-surface moment c, floor (ratio, axis_rad: object frame), pusher
+    friction mu."""
+    ca, sa = math.cos(axis_rad), math.sin(axis_rad)
+    inv2 = 1.0 / (ratio * ratio)  # B_f = R diag(1, 1 / ratio^2) R^T
+    bxx = ca * ca + inv2 * sa * sa
+    byy = sa * sa + inv2 * ca * ca
+    bxy = ca * sa * (1.0 - inv2)
+    ic2 = 1.0 / (c * c)
+    fx, fy, wx, wy, om = _twist(bxx, byy, bxy, ic2, px - gx, py - gy, mu, nx, ny, vx, vy)
+    # the twist is about G: the origin moves with v_G + omega z x (O - G)
+    return wx + om * gy, wy - om * gx, om
+
+
+@njit(cache=True)
+def add_step_loglik(G, samples, weights, ratios, axes, mus, gains, active, step, noise, out):
+    """Adds one step's log-likelihood to out (nG, nfloor, nmu, ngain) for the active floors.
+    step = (px, py, nx, ny, vx, vy, yaw, drive_s, dOx, dOy, dyaw); noise = (sigma_move_m,
+    sigma_turn_rad, rel_model)."""
+    px, py, nx, ny, vx, vy, yaw, tau, ox, oy, oth = step
+    sd, st, rel = noise
+    for g in range(G.shape[0]):
+        for j in range(ratios.shape[0]):
+            if not active[j]:
+                continue
+            axis = axes[j] - yaw
+            c = _moment(
+                samples, weights[g], G[g, 0], G[g, 1], ratios[j], math.cos(axis), math.sin(axis)
+            )
+            for m in range(mus.shape[0]):
+                ux, uy, om = _predict(
+                    c,
+                    G[g, 0],
+                    G[g, 1],
+                    ratios[j],
+                    axis,
+                    mus[m],
+                    px,
+                    py,
+                    nx,
+                    ny,
+                    vx,
+                    vy,
+                )
+                for k in range(gains.shape[0]):
+                    # the turn's gain: an object slow to spin up (large Izz on a slippery
+                    # floor) turns less than the inertia-free model says
+                    q = gains[k] * om * tau
+                    dx = ux * tau + (gains[k] - 1.0) * om * tau * G[g, 1]
+                    dy = uy * tau - (gains[k] - 1.0) * om * tau * G[g, 0]
+                    ex, ey, et = dx - ox, dy - oy, q - oth
+                    vd = sd * sd + rel * rel * (dx * dx + dy * dy)
+                    vt = st * st + rel * rel * q * q
+                    out[g, j, m, k] += (
+                        -0.5 * (ex * ex + ey * ey) / vd
+                        - math.log(vd)
+                        - 0.5 * et * et / vt
+                        - 0.5 * math.log(vt)
+                    )
+
+
+def predict_step(
+    G: np.ndarray,
+    samples: np.ndarray,
+    weights: np.ndarray,
+    ratio: float,
+    axis_rad: float,
+    mu_p: float,
+    step: ContactStep,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The model's motion over `step` for candidate CoMs G (nG, 2) with pressure `weights`
+    (nG, ns) on the footprint `samples`: the frame origin's displacement (nG, 2) and the turn
+    (nG,), for a floor with friction 1 along the axis at `axis_rad` (world) and `ratio` across
+    it and pusher friction `mu_p`."""
+    d = np.empty((len(G), 2))
+    turn = np.empty(len(G))
+    px, py = step.contact
+    nx, ny = step.normal
+    vx, vy = step.push_velocity
+    axis = axis_rad - step.yaw_rad
+    ca, sa = math.cos(axis), math.sin(axis)
+    for g in range(len(G)):
+        c = _moment(samples, weights[g], G[g, 0], G[g, 1], ratio, ca, sa)
+        ux, uy, om = _predict(
+            c,
+            G[g, 0],
+            G[g, 1],
+            ratio,
+            axis,
+            mu_p,
+            px,
+            py,
+            nx,
+            ny,
+            vx,
+            vy,
+        )
+        d[g] = ux * step.drive_s, uy * step.drive_s
+        turn[g] = om * step.drive_s
+    return d, turn
+
+
+def step_array(step: ContactStep) -> np.ndarray:
+    """`add_step_loglik`'s packing of a step."""
+    return np.array(
+        [
+            *step.contact,
+            *step.normal,
+            *step.push_velocity,
+            step.yaw_rad,
+            step.drive_s,
+            *step.d_origin,
+            step.d_yaw,
+        ]
+    )
