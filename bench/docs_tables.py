@@ -149,15 +149,15 @@ def claims(dbs: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
     return columns, out
 
 
-# what pairs two estimators' episodes: the same scene under the same condition
-PAIR_KEY = ("backend", "floor", "speed_cm_s", "object", "com_index", "izz_scale")
+# what pairs two estimators' episodes: the same scene under the same condition and physics
+PAIR_KEY = ("backend", "physics", "floor", "speed_cm_s", "object", "com_index", "izz_scale")
 PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
 
 
-def methods(dbs: Sequence[str], baseline: str = "motion") -> Path:
-    """`fit-methods`: each estimator's mean error per backend and condition (floor, speed) over
-    the databases' episodes, and its paired difference from `baseline` on the same episodes
-    (mean and 95% interval), with the mean wall time per episode."""
+def methods(dbs: Sequence[str], name: str = "fit-methods", baseline: str = "motion") -> Path:
+    """`fit-methods` (or `name`): each estimator's mean error per backend, physics and condition
+    (floor, speed) over the databases' episodes, and its paired difference from `baseline` on
+    the same episodes (mean and 95% interval), with the mean wall time per episode."""
     cols = ["status", "error_cm", "wall_s", "estimator", *PAIR_KEY]
     found: dict[tuple[str, str, float, str], dict[tuple, tuple[float, float]]] = {}
     for url in dbs:
@@ -167,15 +167,14 @@ def methods(dbs: Sequence[str], baseline: str = "motion") -> Path:
                 if e is None:
                     continue
                 method = json.loads(r["estimator"])["method"]
-                cond = (r["backend"], r["floor"], float(r["speed_cm_s"]), method)
+                cond = (r["backend"], r["physics"], r["floor"], float(r["speed_cm_s"]), method)
                 found.setdefault(cond, {})[tuple(r[k] for k in PAIR_KEY)] = (e, r["wall_s"])
     out = []
-    for (backend, fl, sp, method), eps in sorted(
-        found.items(), key=lambda kv: (kv[0][0], kv[0][1], -kv[0][2], kv[0][3])
-    ):
+    order = sorted(found.items(), key=lambda kv: (kv[0][:3], -kv[0][3], kv[0][4]))
+    for (backend, physics, fl, sp, method), eps in order:
         errs = np.array([e for e, _ in eps.values()])
         walls = np.array([w for _, w in eps.values()])
-        base = found.get((backend, fl, sp, baseline), {})
+        base = found.get((backend, physics, fl, sp, baseline), {})
         paired = [eps[k][0] - base[k][0] for k in eps if k in base]
         diff = interval = None
         if method != baseline and len(paired) > 1:
@@ -188,8 +187,9 @@ def methods(dbs: Sequence[str], baseline: str = "motion") -> Path:
         )  # fmt: skip
     columns = ["backend", "floor, speed", "estimator", "episodes", "error (cm)",
                f"- {baseline} (cm)", "95% interval", "ms / episode"]  # fmt: skip
-    command = "python bench/docs_tables.py methods " + " ".join(f"--db {d}" for d in dbs)
-    return write_table("fit-methods", columns, out, command)
+    dbs_args = " ".join(f"--db {d}" for d in dbs)
+    command = f"python bench/docs_tables.py methods --name {name} {dbs_args}"
+    return write_table(name, columns, out, command)
 
 
 def real(data: str) -> list[Path]:
@@ -310,13 +310,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     res.add_argument("--db", action="append", required=True)
     me = sub.add_parser("methods", help="estimators paired per condition, from databases")
     me.add_argument("--db", action="append", required=True)
+    me.add_argument("--name", default="fit-methods", help="docs/data/NAME.json")
     rr = sub.add_parser("real", help="docs/real_robot.md's tables, from recorded pushes")
     rr.add_argument("--data", default="../shared/data/mit-push-train")
     args = ap.parse_args(argv)
     if args.command == "results":
         print(results(args.db))
     if args.command == "methods":
-        print(methods(args.db))
+        print(methods(args.db, args.name))
     if args.command == "real":
         for path in real(args.data):
             print(path)

@@ -586,6 +586,51 @@ def test_docs_tables_fills_a_generated_block_from_its_data(tmp_path, monkeypatch
     assert docs_tables.render([doc]) == []  # rendered again: nothing changes
 
 
+def test_episode_profile_times_estimators_on_the_same_episodes(monkeypatch, capfd):
+    """`episode_profile.py --estimators A,B`: one row per estimator over the same episodes,
+    the first's cost ratio 1, both estimators' mean errors over the episodes both finished."""
+    out = run_bench(
+        "episode_profile.py",
+        *("--backend", "planar", "--speed", "4", "--episodes", "2", "--estimators", "paper,fit"),
+        monkeypatch=monkeypatch,
+        capfd=capfd,
+    )
+    lines = out.strip().splitlines()
+    assert lines[0].startswith("condition | estimator | episodes")
+    paper, fit = (line.split(" | ") for line in lines[1:3])
+    assert paper[1] == "paper" and fit[1] == "fit" and paper[2] == fit[2] == "2"
+    assert float(paper[5]) == 1.0 and float(fit[5]) > 0
+
+
+def test_docs_tables_pairs_estimators_on_the_same_episodes(tmp_path, monkeypatch):
+    """`docs_tables.py methods`: per backend, condition and estimator the mean error, and the
+    paired difference from motion on the episodes both ran (its 95% interval); an episode only
+    one estimator ran is in its mean, not in the pair."""
+    import common
+    import docs_tables
+    from test_db import make_result
+
+    from comexp.method.estimator import EstimatorSettings
+    from comexp.results.store import ResultsDB
+
+    monkeypatch.setattr(common, "DATA", tmp_path / "data")
+    url = f"sqlite:///{tmp_path / 'm.db'}"
+    motion, fit = EstimatorSettings(method="motion"), EstimatorSettings(method="fit")
+    rows = [make_result(com_index=i, error_cm=1.0 + 0.1 * i, estimator=motion) for i in range(4)]
+    rows += [make_result(com_index=i, error_cm=0.5 + 0.1 * i, estimator=fit) for i in range(3)]
+    rows += [make_result(com_index=9, error_cm=0.9, estimator=fit)]  # motion has no pair
+    with ResultsDB(url) as db:
+        db.add_results(None, rows)
+    data = json.loads(docs_tables.methods([url]).read_text())
+    by = {r[2]: r for r in data["rows"]}
+    assert by["motion"][3] == 4 and by["motion"][4] == pytest.approx(1.15)
+    assert by["motion"][5] is None
+    assert by["fit"][3] == 4 and by["fit"][4] == pytest.approx((0.5 + 0.6 + 0.7 + 0.9) / 4)
+    assert by["fit"][5] == pytest.approx(-0.5)  # paired on com_index 0-2 only
+    assert by["fit"][6] == "[-0.500, -0.500]"
+    assert data["command"] == f"python bench/docs_tables.py methods --name fit-methods --db {url}"
+
+
 # --- whole commands --------------------------------------------------------------------------
 
 

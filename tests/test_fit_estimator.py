@@ -262,3 +262,37 @@ def test_in_an_episode_slow_pushes_use_the_model_and_fast_ones_are_motions() -> 
     }
     assert fast["fit"].status == "ok"
     assert fast["fit"].est_com_cm == fast["motion"].est_com_cm
+
+
+@pytest.mark.parametrize(("ratio", "axis"), [(1.0, 0.0), (10.0, math.pi / 2)])
+def test_after_a_slow_push_on_an_anisotropic_floor_it_pushes_for_information(ratio, axis) -> None:
+    """After one slow push simulated with the model: on the anisotropic floor the next push is
+    the valid one whose predicted outcome spreads most across the likeliest CoMs; on the
+    isotropic floor it is Algorithm 1's (motion's choice on the same posterior)."""
+    from comexp.method.motion_estimator import MotionEstimator
+
+    G = np.array([0.018, -0.009])
+    contacts, normals = outline_contacts(BOX)
+    est = make_estimator(
+        region_from_outline(BOX, PIXEL_M), contacts, normals, PIXEL_M,
+        EstimatorSettings(method="fit"), outline_m=BOX, pusher_radius_m=RADIUS_M,
+    )  # fmt: skip
+    P, N = np.array([-0.05, 0.01]), np.array([1.0, 0.0])
+    path = _model_path(G, P, N, ratio, axis, 0.5, Pose2D(0.0, 0.0, 0.3))
+    est.observe_path(path)
+    est.observe(P, N, math.degrees(path.pose_after.yaw_rad - 0.3))
+    chosen = est.next_push()
+    assert chosen is not None
+    algorithm_1 = MotionEstimator.next_push(est)
+    from comexp.method.estimator import line_cuts_region
+
+    valid = np.flatnonzero(est.allowed)
+    valid = valid[line_cuts_region(est.region(), est.contacts[valid], est.normals[valid])]
+    score = est._information(valid)
+    if ratio == 1.0:
+        assert score is None
+        assert np.array_equal(chosen[0], algorithm_1[0])
+    else:
+        best = valid[int(np.argmax(score))]
+        assert np.array_equal(chosen[0], est.contacts[best])
+        assert score.max() > 2 * np.median(score)  # the pushes differ in what they tell

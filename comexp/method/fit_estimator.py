@@ -5,16 +5,18 @@ sizes) times, for every slow push (the pusher at most `FitSettings.max_speed_m_s
 likelihood of each tracked interval under the quasi-static pushing model
 (`comexp.method.quasi_static`): the object's motion predicted from the pose at the interval's
 middle, the contact that pose gives, and a hypothesis (CoM, floor, pusher friction, turn gain).
-The nuisance hypotheses are marginalised: the floor isotropic, or anisotropic with the
-ratio `floor_ratios` across an axis at one of `floor_angles` directions; the pusher's friction on
-`mu_p_grid`; the turn's gain on `turn_gains` (an object slow to spin up, Izz x 10 on a slippery
-floor, turns less than the inertia-free model says). Floors whose evidence falls
-`prune_log` below the best are no longer evaluated.
+The nuisance hypotheses are marginalised: the floor isotropic (prior `iso_prior`), or
+anisotropic with the ratio `floor_ratios` across an axis at one of `floor_angles` directions; the
+pusher's friction on `mu_p_grid`; the turn's gain on `turn_gains` (an object slow to spin up,
+Izz x 10 on a slippery floor, turns less than the inertia-free model says). Floors whose evidence
+falls `prune_log` below the best are no longer evaluated; a push's evidence against any
+hypothesis is capped at `push_max_log` (its intervals share one contact and one model error).
 
 The quasi-static likelihood is computed on a grid `grid_px` pixels apart and carried to
-`motion`'s finer grid by nearest point; its weight `weight` < 1 tempers intervals that share
-their frames' errors. Frames and units as `ComEstimator`'s; docs/method.md, "Beyond the paper:
-`estimator.method=fit`", has the model, its assumptions and where it fails.
+`motion`'s finer grid by nearest point. After a slow push on a floor that looks anisotropic the
+next push is chosen for information (`FitEstimator.next_push`). Frames and units as
+`ComEstimator`'s; docs/method.md, "Beyond the paper: `estimator.method=fit`", has the model, its
+assumptions and where it fails.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import logsumexp
 
-from comexp.method.estimator import EstimatorSettings, region_from_outline
+from comexp.method.estimator import EstimatorSettings, line_cuts_region, region_from_outline
 from comexp.method.motion_estimator import (
     MOTION_VERSION,
     MotionEstimator,
@@ -36,9 +38,11 @@ from comexp.method.motion_estimator import (
     estimate_from_paths,
 )
 from comexp.method.quasi_static import (
+    ContactStep,
     add_step_loglik,
     contact_steps,
     footprint_samples,
+    predict_step,
     pressure_weights,
     step_array,
 )
@@ -60,12 +64,17 @@ class FitSettings:
     floor_angles: int = 12
     mu_p_grid: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
     turn_gains: tuple[float, ...] = (0.35, 0.6, 1.0)
+    iso_prior: float = 0.5  # the floor's prior: isotropic, or one of the anisotropic ones
     prune_log: float = 12.0
     # a push's summed log-likelihood can make no hypothesis less likely than the push's best
     # by more than this (a push the model misreads cannot rule the true CoM out)
     push_max_log: float = 10.0
     footprint_samples: int = 64  # where the floor presses: the limit surface's samples
     grid_px: int = 2  # the model's CoM grid: every this many pixels of the region
+    # after a slow push, the next one is the valid push whose predicted motion differs most
+    # across the posterior's `info_points` likeliest CoMs (the best nuisance hypothesis)
+    choose_for_information: bool = True
+    info_points: int = 48
 
 
 class FitEstimator(MotionEstimator):
@@ -109,10 +118,14 @@ class FitEstimator(MotionEstimator):
         self.ratios = np.array([r for r, _ in floors])
         self.axes = np.array([a for _, a in floors])
         self.active = np.ones(len(floors), dtype=np.bool_)
+        aniso = (1.0 - fs.iso_prior) / max(len(floors) - 1, 1)
+        self.log_prior = np.log(np.where(self.ratios == 1.0, fs.iso_prior, aniso))
         self.mu_p = np.asarray(fs.mu_p_grid, dtype=float)
         self.gains = np.asarray(fs.turn_gains, dtype=float)
         self.loglik = np.zeros((len(self.coarse), len(floors), len(self.mu_p), len(self.gains)))
         self.steps_used = 0
+        self._slow = False  # the last push was read with the quasi-static model
+        self._travel_m = 0.0
         self.to_coarse = cKDTree(self.coarse).query(self.points)[1]
         ms = self.motion
         self.noise = np.array(
@@ -141,7 +154,10 @@ class FitEstimator(MotionEstimator):
             or path.t_end_s is None
             or not path.speed_m_s <= fs.max_speed_m_s
         ):
+            self._slow = False
             return label
+        self._slow = True
+        self._travel_m = max(0.0, (path.t_end_s - path.t_contact_s) * path.speed_m_s)
         steps = contact_steps(
             path.pose_before,
             path.t_s,
@@ -178,20 +194,78 @@ class FitEstimator(MotionEstimator):
         if self.steps_used:
             self._prune()
             n = len(self.coarse)
-            qs = logsumexp(self.loglik[:, self.active].reshape(n, -1), axis=1)
+            prior = self.log_prior[None, self.active, None, None]
+            qs = logsumexp((self.loglik[:, self.active] + prior).reshape(n, -1), axis=1)
             ll = np.log(self.weights + 1e-300) + fs.weight * qs[self.to_coarse]
             p = np.exp(ll - ll.max())
             self.weights = p / p.sum()
         return f"{label}-qs" if steps and len(label) <= 13 else label
 
-    def _prune(self) -> None:
-        """Stop evaluating floors whose evidence is `prune_log` below the best one's."""
+    def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Algorithm 1 against the posterior (`motion`'s), or, after a slow push on a floor the
+        pushes so far say is anisotropic, the valid push (its line cuts the credible region,
+        reachable) that informs most: the largest spread of its predicted turn and
+        displacement across the likeliest CoMs, each over its noise (vision plus the model's
+        error). On isotropic floors Algorithm 1's region-splitting pushes did better."""
+        choice = super().next_push()
+        if choice is None or not (self.fit.choose_for_information and self._slow):
+            return choice
+        region = self.region()
+        valid = np.zeros(len(self.contacts), dtype=bool)
+        idx = np.flatnonzero(self.allowed)
+        valid[idx] = line_cuts_region(region, self.contacts[idx], self.normals[idx])
+        if not valid.any() or self._yaw_now is None:
+            return choice
+        score = self._information(np.flatnonzero(valid))
+        if score is None:
+            return choice
+        j = int(np.flatnonzero(valid)[int(np.argmax(score))])
+        return self.contacts[j].copy(), self.normals[j].copy()
+
+    def _information(self, candidates: np.ndarray) -> np.ndarray | None:
+        """Each candidate push's spread of predicted outcomes over the likeliest CoMs under the
+        likeliest anisotropic floor and its best pusher friction and gain; None while the floor
+        is as likely isotropic as not."""
+        fs = self.fit
+        top = np.argsort(self.weights)[::-1][: fs.info_points]
+        G, w = self.points[top], self.weights[top] / self.weights[top].sum()
+        ev = self._floor_evidence()
+        post = np.exp(ev - ev.max())
+        aniso = self.ratios != 1.0
+        if post[aniso].sum() <= post[~aniso].sum():
+            return None  # isotropic as likely: Algorithm 1's splits inform more (measured)
+        j = int(np.flatnonzero(aniso)[np.argmax(ev[aniso])])
+        m, k = np.unravel_index(int(np.argmax(self.loglik[:, j].max(0))), self.loglik.shape[2:])
+        pressure = pressure_weights(self.samples, G)
+        sd, st, rel = self.noise
+        out = np.empty(len(candidates))
+        for i, c in enumerate(candidates):
+            P, N = self.contacts[c], self.normals[c]
+            step = ContactStep(P, N, N, self._yaw_now, self._travel_m, np.zeros(2), 0.0)
+            d, turn = predict_step(
+                G, self.samples, pressure, self.ratios[j], self.axes[j], self.mu_p[m], step
+            )
+            turn = turn * self.gains[k]
+            var_t = w @ (turn - w @ turn) ** 2
+            var_d = w @ ((d - w @ d) ** 2).sum(1)
+            out[i] = var_t / (st**2 + rel**2 * (w @ turn**2)) + var_d / (
+                sd**2 + rel**2 * (w @ (d**2).sum(1))
+            )
+        return out
+
+    def _floor_evidence(self) -> np.ndarray:
+        """Each floor's log evidence (its prior included; -inf once pruned)."""
         n = len(self.coarse)
         ev = np.full(len(self.active), -np.inf)
         idx = np.flatnonzero(self.active)
-        ev[idx] = logsumexp(
+        ev[idx] = self.log_prior[idx] + logsumexp(
             self.loglik[:, idx].transpose(1, 0, 2, 3).reshape(len(idx), n, -1), axis=(1, 2)
         )
+        return ev
+
+    def _prune(self) -> None:
+        """Stop evaluating floors whose evidence is `prune_log` below the best one's."""
+        ev = self._floor_evidence()
         self.active &= ev >= ev.max() - self.fit.prune_log
 
 
