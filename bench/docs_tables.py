@@ -157,9 +157,10 @@ PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
 def methods(dbs: Sequence[str], name: str = "fit-methods", baseline: str = "motion") -> Path:
     """`fit-methods` (or `name`): each estimator's mean error per backend, physics and condition
     (floor, speed) over the databases' episodes, and its paired difference from `baseline` on
-    the same episodes (mean and 95% interval), with the mean wall time per episode."""
-    cols = ["status", "error_cm", "wall_s", "estimator", *PAIR_KEY]
-    found: dict[tuple[str, str, float, str], dict[tuple, tuple[float, float]]] = {}
+    the same episodes (mean and 95% interval). Cost is episode_profile.py --estimators' (one
+    process, the same episodes alternating): a job's wall times depend on what else ran."""
+    cols = ["status", "error_cm", "estimator", *PAIR_KEY]
+    found: dict[tuple[str, str, str, float, str], dict[tuple, float]] = {}
     for url in dbs:
         with ResultsDB(url, readonly=True) as db:
             for r in db.episodes(columns=cols):
@@ -168,25 +169,22 @@ def methods(dbs: Sequence[str], name: str = "fit-methods", baseline: str = "moti
                     continue
                 method = json.loads(r["estimator"])["method"]
                 cond = (r["backend"], r["physics"], r["floor"], float(r["speed_cm_s"]), method)
-                found.setdefault(cond, {})[tuple(r[k] for k in PAIR_KEY)] = (e, r["wall_s"])
+                found.setdefault(cond, {})[tuple(r[k] for k in PAIR_KEY)] = e
     out = []
     order = sorted(found.items(), key=lambda kv: (kv[0][:3], -kv[0][3], kv[0][4]))
     for (backend, physics, fl, sp, method), eps in order:
-        errs = np.array([e for e, _ in eps.values()])
-        walls = np.array([w for _, w in eps.values()])
+        errs = np.array(list(eps.values()))
         base = found.get((backend, physics, fl, sp, baseline), {})
-        paired = [eps[k][0] - base[k][0] for k in eps if k in base]
+        paired = [eps[k] - base[k] for k in eps if k in base]
         diff = interval = None
         if method != baseline and len(paired) > 1:
             d = np.array(paired)
             half = 1.96 * d.std(ddof=1) / np.sqrt(len(d))
             diff, interval = float(d.mean()), f"[{d.mean() - half:.3f}, {d.mean() + half:.3f}]"
-        out.append(
-            [backend, f"{fl}, {sp:g} cm/s", method, len(errs), float(errs.mean()), diff,
-             interval, 1e3 * float(walls.mean())]
-        )  # fmt: skip
-    columns = ["backend", "floor, speed", "estimator", "episodes", "error (cm)",
-               f"- {baseline} (cm)", "95% interval", "ms / episode"]  # fmt: skip
+        row = [backend, f"{fl}, {sp:g} cm/s", method, len(errs), float(errs.mean())]
+        out.append([*row, diff, interval])
+    columns = ["backend", "floor, speed", "estimator", "episodes", "error (cm)"]
+    columns += [f"- {baseline} (cm)", "95% interval"]
     dbs_args = " ".join(f"--db {d}" for d in dbs)
     command = f"python bench/docs_tables.py methods --name {name} {dbs_args}"
     return write_table(name, columns, out, command)
