@@ -25,8 +25,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.special import logsumexp
 
 from comexp.method.estimator import EstimatorSettings, line_cuts_region, region_from_outline
 from comexp.method.motion_estimator import (
@@ -126,6 +124,8 @@ class FitEstimator(MotionEstimator):
         self.steps_used = 0
         self._slow = False  # the last push was read with the quasi-static model
         self._travel_m = 0.0
+        from scipy.spatial import cKDTree  # here: its import (0.3 s) only where fit runs
+
         self.to_coarse = cKDTree(self.coarse).query(self.points)[1]
         ms = self.motion
         self.noise = np.array(
@@ -192,6 +192,8 @@ class FitEstimator(MotionEstimator):
             self.loglik += np.maximum(push_ll, best - fs.push_max_log)
         self.steps_used += len(steps)
         if self.steps_used:
+            from scipy.special import logsumexp
+
             self._prune()
             n = len(self.coarse)
             prior = self.log_prior[None, self.active, None, None]
@@ -255,6 +257,8 @@ class FitEstimator(MotionEstimator):
 
     def _floor_evidence(self) -> np.ndarray:
         """Each floor's log evidence (its prior included; -inf once pruned)."""
+        from scipy.special import logsumexp
+
         n = len(self.coarse)
         ev = np.full(len(self.active), -np.inf)
         idx = np.flatnonzero(self.active)
