@@ -296,3 +296,29 @@ def test_after_a_slow_push_on_an_anisotropic_floor_it_pushes_for_information(rat
         best = valid[int(np.argmax(score))]
         assert np.array_equal(chosen[0], est.contacts[best])
         assert score.max() > 2 * np.median(score)  # the pushes differ in what they tell
+
+
+def test_a_robot_s_own_pushes_in_the_world_frame() -> None:
+    """`estimate_com_fit` on `MotionPush`es (world frame, the object placed anywhere): the
+    estimate the episode-side estimator gives on the same pushes in the object frame."""
+    from comexp.method.fit_estimator import estimate_com_fit
+    from comexp.method.motion_estimator import MotionPush
+
+    G = np.array([0.018, -0.009])
+    pose = Pose2D(0.12, -0.07, 0.3)
+    pushes = []
+    for P, N in [((-0.05, 0.01), (1, 0)), ((0.02, -0.03), (0, 1)), ((0.05, 0.0), (-1, 0))]:
+        P, N = np.array(P, float), np.array(N, float)
+        path = _model_path(G, P, N, 10.0, math.pi / 2, 0.5, pose)
+        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+        pushes.append(
+            MotionPush(
+                tuple(pose.to_world(P)), (c * N[0] - s * N[1], s * N[0] + c * N[1]), pose,
+                path.t_s, path.poses, path.pose_after, path.t_contact_s,
+                speed_m_s=path.speed_m_s, t_end_s=path.t_end_s,
+            )
+        )  # fmt: skip
+        pose = path.pose_after
+    est = estimate_com_fit(BOX, pushes, PIXEL_M, RADIUS_M)
+    assert np.hypot(*(est.com_object_m - G)) < 2 * PIXEL_M
+    assert est.com_world_m == pytest.approx(pushes[0].pose_before.to_world(est.com_object_m))
