@@ -266,6 +266,20 @@ def add_step_loglik(G, samples, weights, ratios, axes, mus, gains, active, step,
                     )
 
 
+@njit(cache=True)
+def _predict_all(G, samples, weights, ratio, axis, mu, step, d, turn):
+    """`predict_step`'s loop over the candidates, compiled (a push choice calls it for every
+    candidate push)."""
+    px, py, nx, ny, vx, vy, _, tau = step[:8]
+    ca, sa = math.cos(axis), math.sin(axis)
+    for g in range(G.shape[0]):
+        c = _moment(samples, weights[g], G[g, 0], G[g, 1], ratio, ca, sa)
+        ux, uy, om = _predict(c, G[g, 0], G[g, 1], ratio, axis, mu, px, py, nx, ny, vx, vy)
+        d[g, 0] = ux * tau
+        d[g, 1] = uy * tau
+        turn[g] = om * tau
+
+
 def predict_step(
     G: np.ndarray,
     samples: np.ndarray,
@@ -281,29 +295,17 @@ def predict_step(
     it and pusher friction `mu_p`."""
     d = np.empty((len(G), 2))
     turn = np.empty(len(G))
-    px, py = step.contact
-    nx, ny = step.normal
-    vx, vy = step.push_velocity
-    axis = axis_rad - step.yaw_rad
-    ca, sa = math.cos(axis), math.sin(axis)
-    for g in range(len(G)):
-        c = _moment(samples, weights[g], G[g, 0], G[g, 1], ratio, ca, sa)
-        ux, uy, om = _predict(
-            c,
-            G[g, 0],
-            G[g, 1],
-            ratio,
-            axis,
-            mu_p,
-            px,
-            py,
-            nx,
-            ny,
-            vx,
-            vy,
-        )
-        d[g] = ux * step.drive_s, uy * step.drive_s
-        turn[g] = om * step.drive_s
+    _predict_all(
+        np.ascontiguousarray(G, dtype=float),
+        samples,
+        weights,
+        ratio,
+        axis_rad - step.yaw_rad,
+        mu_p,
+        step_array(step),
+        d,
+        turn,
+    )
     return d, turn
 
 
