@@ -87,7 +87,7 @@ def test_an_anisotropic_floor_turns_the_motion_toward_its_slippery_axis() -> Non
     assert d[0, 0] > 5 * d[0, 1] > 0
 
 
-def _planar_slow_push(com_cm, mu_floor, P, N, izz=1.0):
+def _planar_slow_push(com_cm, mu_floor, P, N, izz=1.0, mu_pusher=0.5):
     """A 4 cm/s push on planar, the true poses at 30 frames/s (object frame = the true one)."""
     from test_episode import spec_for
 
@@ -96,7 +96,7 @@ def _planar_slow_push(com_cm, mu_floor, P, N, izz=1.0):
     from comexp.sim.protocol import push
 
     spec = spec_for(backend="planar", speed=4.0, mu=mu_floor, com=com_cm)
-    spec = replace(spec, izz_scale=izz)
+    spec = replace(spec, izz_scale=izz, mu_pusher=mu_pusher)
     sim = make_simulator("planar")
     scene = build_scene(spec)
     sim.build(scene)
@@ -147,6 +147,44 @@ def test_the_model_follows_the_referee_on_a_slow_push(lever_m) -> None:
     predicted = sum(predict_step(G, samples, w, 1.0, 0.0, spec.mu_pusher, s)[1][0] for s in steps)
     observed = sum(s.d_yaw for s in steps)
     assert np.sign(predicted) == np.sign(observed) == np.sign(lever_m)
+    assert predicted == pytest.approx(observed, rel=0.15)
+
+
+@pytest.mark.parametrize(
+    "mu_pusher",
+    [
+        pytest.param(
+            0.1,
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="inertia: a slipping pusher spins a light object on a slippery floor "
+                "ahead of the quasi-static twist, measured 1.25x the model's turn",
+            ),
+        ),
+        1.0,
+    ],
+)
+def test_the_model_follows_the_referee_on_a_slippery_floor(mu_pusher) -> None:
+    """Planar, 4 cm/s, floor mu 0.1, Izz x 1, lever 15 mm, the push's intervals after the first
+    (which holds the impact): the model's turn within 15% of the referee's. With a sticking
+    pusher (mu 1) it is (0.99x); with a slipping one (mu 0.1) the object's inertia carries its
+    spin on ahead of the model's (1.25x over the push, up to 2.3x in its last intervals)."""
+    from test_episode import BOX_CM
+
+    com_cm = (1.5, 0.8)
+    outline = np.array(BOX_CM) / 100.0
+    P = np.array([outline[:, 0].min(), com_cm[1] / 100 - 0.015])
+    spec, outline, steps = _planar_slow_push(
+        com_cm, 0.1, P, np.array([1.0, 0.0]), mu_pusher=mu_pusher
+    )
+    assert len(steps) >= 10
+    samples = footprint_samples(outline)
+    G = np.array([com_cm]) / 100.0
+    w = pressure_weights(samples, G)
+    steady = steps[1:]
+    predicted = sum(predict_step(G, samples, w, 1.0, 0.0, mu_pusher, s)[1][0] for s in steady)
+    observed = sum(s.d_yaw for s in steady)
+    assert np.sign(predicted) == np.sign(observed) == 1.0
     assert predicted == pytest.approx(observed, rel=0.15)
 
 
