@@ -16,7 +16,7 @@ from comexp.method.frames import Pose2D
 from comexp.method.motion_estimator import PushPath
 from comexp.method.quasi_static import (
     ContactStep,
-    contact_steps,
+    PusherDrive,
     footprint_samples,
     predict_step,
     pressure_weights,
@@ -112,7 +112,7 @@ def _planar_slow_push(com_cm, mu_floor, P, N, izz=1.0, mu_pusher=0.5):
     approach = float(np.hypot(*(true0.to_world(P) - cmd.start_xy_m)))
     t_contact = (approach - scene.pusher.radius_m) / cmd.speed_m_s
     outline = np.array(spec.outline_cm) / 100.0
-    steps = contact_steps(
+    steps = PusherDrive(
         true0,
         tuple(t for t, _ in frames),
         tuple(p for _, p in frames),
@@ -123,8 +123,7 @@ def _planar_slow_push(com_cm, mu_floor, P, N, izz=1.0, mu_pusher=0.5):
         cmd.speed_m_s,
         outline,
         scene.pusher.radius_m,
-        0.002,
-    )
+    ).steps(0.002)
     return spec, outline, steps
 
 
@@ -186,6 +185,27 @@ def test_the_model_follows_the_referee_on_a_slippery_floor(mu_pusher) -> None:
     observed = sum(s.d_yaw for s in steady)
     assert np.sign(predicted) == np.sign(observed) == 1.0
     assert predicted == pytest.approx(observed, rel=0.15)
+
+
+def test_a_pusher_that_touches_early_is_measured_and_timed() -> None:
+    """The object moves with the pusher 1 mm ahead of where its disc should touch (pybullet's
+    contact keeps that stand-off): the gaps' median is that offset, and with it the first
+    interval starts when the object did and every interval's motion is the pusher's travel."""
+    v, dt, t_contact, offset = 0.04, 0.1, 0.05, 0.001
+    t_touch = t_contact - offset / v
+    P, N = np.array([-0.05, 0.0]), np.array([1.0, 0.0])
+    t_s = tuple(dt * (k + 1) for k in range(8))
+    poses = tuple(Pose2D(max(0.0, v * (t - t_touch)), 0.0, 0.0) for t in t_s)
+    drive = PusherDrive(Pose2D(0.0, 0.0, 0.0), t_s, poses, P, N, t_contact, 0.7, v, BOX, RADIUS_M)
+    gaps = drive.gaps_m(0.005)
+    assert len(gaps) == 7
+    assert np.median(gaps) == pytest.approx(offset, abs=1e-9)
+    nominal = drive.steps(0.002)
+    timed = drive.steps(0.002, offset_m=float(np.median(gaps)))
+    assert nominal[0].drive_s == pytest.approx(dt - t_contact)  # the object moved before
+    assert timed[0].drive_s == pytest.approx(dt - t_touch)
+    for step in timed:
+        assert step.d_origin[0] == pytest.approx(v * step.drive_s, abs=1e-12)
 
 
 def _model_path(G, P, N, ratio, axis, mu, pose0, speed=0.04, travel=0.03, dt_frame=0.1):

@@ -74,61 +74,91 @@ def _between(a: Pose2D, b: Pose2D) -> Pose2D:
     return Pose2D((a.x_m + b.x_m) / 2, (a.y_m + b.y_m) / 2, a.yaw_rad + d / 2)
 
 
-def contact_steps(
-    pose_before: Pose2D,
-    t_s: tuple[float, ...],
-    poses: tuple[Pose2D, ...],
-    contact_m: np.ndarray,
-    direction: np.ndarray,
-    t_contact_s: float,
-    t_end_s: float,
-    speed_m_s: float,
-    outline_m: np.ndarray,
-    pusher_radius_m: float,
-    max_gap_m: float,
-) -> list[ContactStep]:
-    """The intervals between consecutive tracked poses (the pose before the push first) in which
-    the pusher drove with its disc within `max_gap_m` of the outline. The pusher moves along
-    `direction` (object frame at the push's start) at `speed_m_s`, its disc touching `contact_m`
-    at `t_contact_s`, until `t_end_s`; poses are world poses of the object frame."""
-    N = np.asarray(direction, dtype=float)
-    N = N / np.linalg.norm(N)
-    start = pose_before.to_world(np.asarray(contact_m, dtype=float) - pusher_radius_m * N)
-    c0, s0 = math.cos(pose_before.yaw_rad), math.sin(pose_before.yaw_rad)
-    n_world = np.array([c0 * N[0] - s0 * N[1], s0 * N[0] + c0 * N[1]])
-    times = (0.0, *t_s)
-    track = (pose_before, *poses)
-    steps: list[ContactStep] = []
-    yaw_prev = pose_before.yaw_rad
-    unwrapped = [pose_before.yaw_rad]
-    for p in poses:
-        yaw_prev += (p.yaw_rad - yaw_prev + math.pi) % (2 * math.pi) - math.pi
-        unwrapped.append(yaw_prev)
-    for k in range(len(track) - 1):
-        ta, tb = times[k], times[k + 1]
-        lo, hi = max(ta, t_contact_s), min(tb, t_end_s)
-        if hi <= lo:
-            continue
-        mid = _between(track[k], track[k + 1])
-        t_mid = 0.5 * (lo + hi)
-        q = mid.to_object(start + n_world * speed_m_s * (t_mid - t_contact_s))
-        p, dist, inside = _closest_on_outline(q, outline_m)
-        if inside or dist - pusher_radius_m > max_gap_m or dist < 1e-9:
-            continue
-        normal = (p - q) / dist
-        c, s = math.cos(mid.yaw_rad), math.sin(mid.yaw_rad)
-        v_world = n_world * speed_m_s
-        v = np.array([c * v_world[0] + s * v_world[1], -s * v_world[0] + c * v_world[1]])
-        if v @ normal <= 0:
-            continue
-        dxy = np.array([track[k + 1].x_m - track[k].x_m, track[k + 1].y_m - track[k].y_m])
-        d_origin = np.array([c * dxy[0] + s * dxy[1], -s * dxy[0] + c * dxy[1]])
-        steps.append(
-            ContactStep(
-                p, normal, v, mid.yaw_rad, hi - lo, d_origin, unwrapped[k + 1] - unwrapped[k]
+@dataclass(frozen=True, eq=False)
+class PusherDrive:
+    """One push as the camera and the command saw it: poses are world poses of the object frame
+    (the pose before the push first, then one per tracked frame at `t_s`); the pusher moves
+    along `direction` (object frame at the push's start) at `speed_m_s`, its disc of
+    `pusher_radius_m` touching `contact_m` at `t_contact_s`, until `t_end_s`."""
+
+    pose_before: Pose2D
+    t_s: tuple[float, ...]
+    poses: tuple[Pose2D, ...]
+    contact_m: np.ndarray
+    direction: np.ndarray
+    t_contact_s: float
+    t_end_s: float
+    speed_m_s: float
+    outline_m: np.ndarray
+    pusher_radius_m: float
+
+    def _intervals(self, radius_m: float, t_contact_s: float):
+        """(k, lo, hi, middle pose, the disc's centre in the object frame then, the push's
+        world direction) for every interval between consecutive poses in which the pusher
+        drove past the contact, for a disc of `radius_m` touching at `t_contact_s`."""
+        N = np.asarray(self.direction, dtype=float)
+        N = N / np.linalg.norm(N)
+        b = self.pose_before
+        start = b.to_world(np.asarray(self.contact_m, dtype=float) - radius_m * N)
+        c0, s0 = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+        n_world = np.array([c0 * N[0] - s0 * N[1], s0 * N[0] + c0 * N[1]])
+        times = (0.0, *self.t_s)
+        track = (b, *self.poses)
+        for k in range(len(track) - 1):
+            lo, hi = max(times[k], t_contact_s), min(times[k + 1], self.t_end_s)
+            if hi <= lo:
+                continue
+            mid = _between(track[k], track[k + 1])
+            t_mid = 0.5 * (lo + hi)
+            q = mid.to_object(start + n_world * self.speed_m_s * (t_mid - t_contact_s))
+            yield k, lo, hi, mid, q, n_world
+
+    def gaps_m(self, window_m: float) -> list[float]:
+        """How far the pusher's disc stayed from the outline while it drove the object: the
+        signed gap (negative: overlap) at the middle of each interval, those within `window_m`
+        either way. A pusher that touches early or late (its calibration, its compliance, an
+        engine's contact margin, a bias of the perceived outline) shows as their median, the
+        same push after push."""
+        r = self.pusher_radius_m
+        gaps = []
+        for *_, q, _ in self._intervals(r, self.t_contact_s):
+            _, dist, inside = _closest_on_outline(q, self.outline_m)
+            gap = (-dist if inside else dist) - r
+            if abs(gap) <= window_m:
+                gaps.append(gap)
+        return gaps
+
+    def steps(self, max_gap_m: float, offset_m: float = 0.0) -> list[ContactStep]:
+        """The intervals in which the pusher drove with its disc within `max_gap_m` of the
+        outline. `offset_m` (the median of `gaps_m`): the disc acts as if that much larger,
+        touching that much earlier."""
+        radius = self.pusher_radius_m + offset_m
+        t_touch = self.t_contact_s - offset_m / self.speed_m_s
+        yaw_prev = self.pose_before.yaw_rad
+        unwrapped = [yaw_prev]
+        for p in self.poses:
+            yaw_prev += (p.yaw_rad - yaw_prev + math.pi) % (2 * math.pi) - math.pi
+            unwrapped.append(yaw_prev)
+        track = (self.pose_before, *self.poses)
+        steps: list[ContactStep] = []
+        for k, lo, hi, mid, q, n_world in self._intervals(radius, t_touch):
+            p, dist, inside = _closest_on_outline(q, self.outline_m)
+            if inside or dist - radius > max_gap_m or dist < 1e-9:
+                continue
+            normal = (p - q) / dist
+            c, s = math.cos(mid.yaw_rad), math.sin(mid.yaw_rad)
+            v_world = n_world * self.speed_m_s
+            v = np.array([c * v_world[0] + s * v_world[1], -s * v_world[0] + c * v_world[1]])
+            if v @ normal <= 0:
+                continue
+            dxy = np.array([track[k + 1].x_m - track[k].x_m, track[k + 1].y_m - track[k].y_m])
+            d_origin = np.array([c * dxy[0] + s * dxy[1], -s * dxy[0] + c * dxy[1]])
+            steps.append(
+                ContactStep(
+                    p, normal, v, mid.yaw_rad, hi - lo, d_origin, unwrapped[k + 1] - unwrapped[k]
+                )
             )
-        )
-    return steps
+        return steps
 
 
 def footprint_samples(outline_m: np.ndarray, n: int = 64) -> np.ndarray:
