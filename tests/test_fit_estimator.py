@@ -208,6 +208,24 @@ def test_a_pusher_that_touches_early_is_measured_and_timed() -> None:
         assert step.d_origin[0] == pytest.approx(v * step.drive_s, abs=1e-12)
 
 
+def test_a_pusher_that_never_moves_drives_no_interval() -> None:
+    """A push logged with speed 0 (a robot's log can say so): no interval, no division by it."""
+    poses = (Pose2D(0.0, 0.0, 0.0),) * 3
+    drive = PusherDrive(
+        Pose2D(0.0, 0.0, 0.0),
+        (0.1, 0.2, 0.3),
+        poses,
+        np.array([-0.05, 0.0]),
+        np.array([1.0, 0.0]),
+        0.05,
+        0.3,
+        0.0,
+        BOX,
+        RADIUS_M,
+    )
+    assert drive.steps(0.002, offset_m=0.001) == []
+
+
 def _model_path(G, P, N, ratio, axis, mu, pose0, speed=0.04, travel=0.03, dt_frame=0.1):
     """A push's path integrated with the model itself (1 ms steps), frames every dt_frame."""
     samples = footprint_samples(BOX)

@@ -133,7 +133,7 @@ class PusherDrive:
         outline. `offset_m` (the median of `gaps_m`): the disc acts as if that much larger,
         touching that much earlier."""
         radius = self.pusher_radius_m + offset_m
-        t_touch = self.t_contact_s - offset_m / self.speed_m_s
+        t_touch = self.t_contact_s - (offset_m / self.speed_m_s if self.speed_m_s > 0 else 0.0)
         yaw_prev = self.pose_before.yaw_rad
         unwrapped = [yaw_prev]
         for p in self.poses:
