@@ -41,6 +41,7 @@ from common import DATA, write_table
 from omegaconf import MISSING
 
 from comexp.experiment.config import config_keys
+from comexp.experiment.grid import PINNED_VERSIONS
 from comexp.results.claims import CLAIM_COLUMNS, claims_records
 from comexp.results.paper import ALL_OBJECTS_MEAN_CM
 from comexp.results.reports import ok_error
@@ -154,10 +155,26 @@ PAIR_KEY = ("backend", "physics", "floor", "speed_cm_s", "object", "com_index", 
 PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
 
 
-def methods(dbs: Sequence[str], name: str = "fit-methods", baseline: str = "motion") -> Path:
+def estimator_label(estimator_json: str) -> str:
+    """An episode's estimator as the tables name it: its method, and the model's revision when
+    it is not the one the code pins today (`PINNED_VERSIONS`), e.g. `fit (fit-1+motion-3)`."""
+    est = json.loads(estimator_json)
+    method, version = est["method"], est.get("motion_version") or ""
+    if version and version != PINNED_VERSIONS.get(method, version):
+        return f"{method} ({version})"
+    return method
+
+
+def methods(
+    dbs: Sequence[str],
+    name: str = "fit-methods",
+    baseline: str = "motion",
+    method: str | None = None,
+) -> Path:
     """`fit-methods` (or `name`): each estimator's mean error per backend, physics and condition
-    (floor, speed) over the databases' episodes, and its paired difference from `baseline` on
-    the same episodes (mean and 95% interval). Cost is episode_profile.py --estimators' (one
+    (floor, speed) over the databases' episodes, and its paired difference from `baseline` (an
+    `estimator_label`) on the same episodes (mean and 95% interval); `method`: that method's
+    episodes only, every revision of it. Cost is episode_profile.py --estimators' (one
     process, the same episodes alternating): a job's wall times depend on what else ran."""
     cols = ["status", "error_cm", "estimator", *PAIR_KEY]
     found: dict[tuple[str, str, str, float, str], dict[tuple, float]] = {}
@@ -167,26 +184,31 @@ def methods(dbs: Sequence[str], name: str = "fit-methods", baseline: str = "moti
                 e = ok_error(r)
                 if e is None:
                     continue
-                method = json.loads(r["estimator"])["method"]
-                cond = (r["backend"], r["physics"], r["floor"], float(r["speed_cm_s"]), method)
+                if method and json.loads(r["estimator"])["method"] != method:
+                    continue
+                label = estimator_label(r["estimator"])
+                cond = (r["backend"], r["physics"], r["floor"], float(r["speed_cm_s"]), label)
                 found.setdefault(cond, {})[tuple(r[k] for k in PAIR_KEY)] = e
     out = []
     order = sorted(found.items(), key=lambda kv: (kv[0][:3], -kv[0][3], kv[0][4]))
-    for (backend, physics, fl, sp, method), eps in order:
+    for (backend, physics, fl, sp, label), eps in order:
         errs = np.array(list(eps.values()))
         base = found.get((backend, physics, fl, sp, baseline), {})
         paired = [eps[k] - base[k] for k in eps if k in base]
         diff = interval = None
-        if method != baseline and len(paired) > 1:
+        if label != baseline and len(paired) > 1:
             d = np.array(paired)
             half = 1.96 * d.std(ddof=1) / np.sqrt(len(d))
             diff, interval = float(d.mean()), f"[{d.mean() - half:.3f}, {d.mean() + half:.3f}]"
-        row = [backend, f"{fl}, {sp:g} cm/s", method, len(errs), float(errs.mean())]
+        row = [backend, f"{fl}, {sp:g} cm/s", label, len(errs), float(errs.mean())]
         out.append([*row, diff, interval])
     columns = ["backend", "floor, speed", "estimator", "episodes", "error (cm)"]
     columns += [f"- {baseline} (cm)", "95% interval"]
-    dbs_args = " ".join(f"--db {d}" for d in dbs)
-    command = f"python bench/docs_tables.py methods --name {name} {dbs_args}"
+    args = [f"--name {name}"]
+    args += [f"--baseline '{baseline}'"] if baseline != "motion" else []
+    args += [f"--method {method}"] if method else []
+    args += [f"--db {d}" for d in dbs]
+    command = "python bench/docs_tables.py methods " + " ".join(args)
     return write_table(name, columns, out, command)
 
 
@@ -309,13 +331,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     me = sub.add_parser("methods", help="estimators paired per condition, from databases")
     me.add_argument("--db", action="append", required=True)
     me.add_argument("--name", default="fit-methods", help="docs/data/NAME.json")
+    me.add_argument("--baseline", default="motion", help="the estimator the others pair with")
+    me.add_argument("--method", help="this method's episodes only (every revision)")
     rr = sub.add_parser("real", help="docs/real_robot.md's tables, from recorded pushes")
     rr.add_argument("--data", default="../shared/data/mit-push-train")
     args = ap.parse_args(argv)
     if args.command == "results":
         print(results(args.db))
     if args.command == "methods":
-        print(methods(args.db, args.name))
+        print(methods(args.db, args.name, args.baseline, args.method))
     if args.command == "real":
         for path in real(args.data):
             print(path)

@@ -633,6 +633,35 @@ def test_docs_tables_pairs_estimators_on_the_same_episodes(tmp_path, monkeypatch
     assert data["command"] == f"python bench/docs_tables.py methods --name fit-methods --db {url}"
 
 
+def test_docs_tables_pairs_a_model_with_its_previous_revision(tmp_path, monkeypatch):
+    """`methods --baseline 'fit (REV)' --method fit`: an older revision of a pinned model is
+    labelled with it and pairs with today's on the same episodes; other methods are left out."""
+    import common
+    import docs_tables
+    from test_db import make_result
+
+    from comexp.experiment.grid import PINNED_VERSIONS
+    from comexp.method.estimator import EstimatorSettings
+    from comexp.results.store import ResultsDB
+
+    monkeypatch.setattr(common, "DATA", tmp_path / "data")
+    url = f"sqlite:///{tmp_path / 'r.db'}"
+    old = EstimatorSettings(method="fit", motion_version="fit-0+old")
+    new = EstimatorSettings(method="fit", motion_version=PINNED_VERSIONS["fit"])
+    motion = EstimatorSettings(method="motion", motion_version=PINNED_VERSIONS["motion"])
+    rows = [make_result(com_index=i, error_cm=1.0, estimator=old) for i in range(3)]
+    rows += [make_result(com_index=i, error_cm=0.8 + 0.01 * i, estimator=new) for i in range(3)]
+    rows += [make_result(com_index=i, error_cm=2.0, estimator=motion) for i in range(3)]
+    with ResultsDB(url) as db:
+        db.add_results(None, rows)
+    path = docs_tables.methods([url], "rev", baseline="fit (fit-0+old)", method="fit")
+    data = json.loads(path.read_text())
+    by = {r[2]: r for r in data["rows"]}
+    assert set(by) == {"fit", "fit (fit-0+old)"}
+    assert by["fit"][5] == pytest.approx(-0.19) and by["fit (fit-0+old)"][5] is None
+    assert "--baseline 'fit (fit-0+old)' --method fit" in data["command"]
+
+
 # --- whole commands --------------------------------------------------------------------------
 
 
