@@ -2,7 +2,8 @@
 
 - The footprint is sampled by the cells of a regular grid clipped to the polygon; each sample
   carries the normal force of its area.
-- The normal pressure is that of a rigid plate on a uniform elastic (Winkler) foundation:
+- The normal pressure is that of a rigid plate on a uniform elastic (Winkler) foundation
+  (`comexp.method.pressure`, which the `fit` estimator's model shares):
   linear, tensionless (clipped at zero), its centre of pressure placed by moment balance.
 - Anisotropic floors follow the elliptic maximum-dissipation law: the friction force of a
   sample with slip u lies in the ellipse |(f_x / mu_x, f_y / mu_y)| <= N and dissipates the
@@ -30,15 +31,17 @@ from numba import njit
 
 from comexp.backends.numba_kernels import DirectCall
 from comexp.backends.physics_settings import FrictionSettings  # with every backend's settings
+from comexp.method.pressure import (  # the Winkler pressure: shared with the fit model
+    COP_INSIDE_M,
+    WinklerPressure,
+    half_planes,
+    inside_hull,
+    pressure_kernel,
+    sample_loop,
+    solve_spd3,
+)
 from comexp.sim.contact import pusher_contact_height_m
 from comexp.sim.scene import GRAVITY_M_S2, ObjectSpec, PusherSpec
-
-# The loops over the footprint's samples are compiled as SIMD loops: their sums may be
-# reassociated (summed in vector lanes) and multiply-adds fused, and a division follows IEEE
-# (inf / NaN, which the protocol reports as `sim_unstable`) instead of raising, which is what
-# kept LLVM from vectorising them. That changes the sums in their last bits only (a 400-sample
-# Newton pass: 4.9 -> 1.3 us); one build on one CPU still gives the same bits every run.
-sample_loop = njit(cache=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 
 
 @njit(cache=True)
@@ -145,23 +148,6 @@ def value_kernel(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor):
 
 
 @njit(cache=True)
-def _solve_spd3(H, r, out):
-    """out = H^-1 r for a symmetric positive definite 3x3 H (LDL^T, no pivoting needed)."""
-    d0 = H[0, 0]
-    l10 = H[0, 1] / d0
-    l20 = H[0, 2] / d0
-    d1 = H[1, 1] - l10 * H[0, 1]
-    l21 = (H[1, 2] - l20 * H[0, 1]) / d1
-    d2 = H[2, 2] - l20 * H[0, 2] - l21 * l21 * d1
-    y0 = r[0]
-    y1 = r[1] - l10 * y0
-    y2 = r[2] - l20 * y0 - l21 * y1
-    out[2] = y2 / d2
-    out[1] = y1 / d1 - l21 * out[2]
-    out[0] = y0 / d0 - l10 * out[1] - l20 * out[2]
-
-
-@njit(cache=True)
 def _line_search(
     xi, step, t, f, dec, trial, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g1, H1
 ):
@@ -218,9 +204,9 @@ def minimise_kernel(
     trial = np.zeros(3)
     f = _objective_into(xi, xi_hat, M, w, dx, dy, mx, my, dt, eps, k, tau, r0, floor, g, H)
     for _ in range(itmax):
-        _solve_spd3(H, g, y)
+        solve_spd3(H, g, y)
         if constrained:
-            _solve_spd3(H, a, z)
+            solve_spd3(H, a, z)
             ratio = (a[0] * y[0] + a[1] * y[1] + a[2] * y[2]) / (
                 a[0] * z[0] + a[1] * z[1] + a[2] * z[2]
             )
@@ -283,138 +269,6 @@ def footprint_samples(outline_m: np.ndarray, n_target: int) -> tuple[np.ndarray,
     return cent, area[keep]
 
 
-@sample_loop
-def _winkler_kernel(dx, dy, a, W, cx, cy, coef):
-    """Tensionless linear pressure: minimise the convex, C1, piecewise-quadratic
-    Phi(alpha, beta) = sum a_k max(0, alpha + beta . d_k)^2 / 2 - W (alpha + beta . c), whose
-    stationarity is the force and moment balance sum p_k a_k (1, d_k) = W (1, c) with
-    p_k = max(0, alpha + beta . d_k). Damped Newton from `coef` (updated in place); its sums
-    in scalars and its 3x3 solve in place (`_solve_spd3`): nothing is allocated per pass."""
-    n = dx.shape[0]
-    g = np.empty(3)
-    H = np.empty((3, 3))
-    step = np.empty(3)
-    for _ in range(100):
-        phi = g0 = g1 = g2 = 0.0
-        h00 = h01 = h02 = h11 = h12 = h22 = 0.0
-        for k in range(n):
-            p = coef[0] + coef[1] * dx[k] + coef[2] * dy[k]
-            if p > 0.0:
-                ak = a[k]
-                akp = ak * p
-                phi += 0.5 * akp * p
-                g0 += akp
-                g1 += akp * dx[k]
-                g2 += akp * dy[k]
-                h00 += ak
-                h01 += ak * dx[k]
-                h02 += ak * dy[k]
-                h11 += ak * dx[k] * dx[k]
-                h12 += ak * dx[k] * dy[k]
-                h22 += ak * dy[k] * dy[k]
-        phi -= W * (coef[0] + coef[1] * cx + coef[2] * cy)
-        g[0], g[1], g[2] = g0 - W, g1 - W * cx, g2 - W * cy
-        if abs(g[0]) <= 1e-12 * W and abs(g[1]) + abs(g[2]) <= 1e-15 * W:
-            break
-        H[0, 0], H[1, 1], H[2, 2] = h00 + 1e-18, h11 + 1e-18, h22 + 1e-18
-        H[0, 1] = H[1, 0] = h01
-        H[0, 2] = H[2, 0] = h02
-        H[1, 2] = H[2, 1] = h12
-        _solve_spd3(H, g, step)
-        for i in range(3):
-            step[i] = -step[i]
-        dec = -(g[0] * step[0] + g[1] * step[1] + g[2] * step[2])
-        t = 1.0
-        while t > 1e-10:
-            c0, c1, c2 = coef[0] + t * step[0], coef[1] + t * step[1], coef[2] + t * step[2]
-            phi1 = -W * (c0 + c1 * cx + c2 * cy)
-            for k in range(n):
-                p = c0 + c1 * dx[k] + c2 * dy[k]
-                if p > 0.0:
-                    phi1 += 0.5 * a[k] * p * p
-            if phi1 <= phi - 0.25 * t * dec:
-                break
-            t *= 0.5
-        for i in range(3):
-            coef[i] += t * step[i]
-        if dec < 1e-30 * W * W:
-            break
-
-
-@sample_loop
-def _pressure_into(dx, dy, a, r, coef, out, clip):
-    """out_k = a_k max(0, alpha + beta . d_k) (`clip`) or a_k (alpha + beta . d_k); returns
-    the smallest pressure and the sums of out_k and out_k r_k (the holding force's and
-    torque's, `_update_holding`), in one pass over the samples."""
-    p_min = np.inf
-    tot = mom = 0.0
-    for k in range(dx.shape[0]):
-        p = coef[0] + (dx[k] * coef[1] + dy[k] * coef[2])
-        p_min = min(p_min, p)
-        f = a[k] * p
-        if clip and p <= 0.0:
-            f = 0.0
-        out[k] = f
-        tot += f
-        mom += f * r[k]
-    return p_min, tot, mom
-
-
-@njit(cache=True)
-def pressure_kernel(dx, dy, a, r, W, wm, cx, cy, warm, out):
-    """Normal force of each sample for a centre of pressure (cx, cy), into `out`: one 3x3
-    solve inside the kern, where no sample is clipped; the tensionless problem beyond it.
-    Returns the sums of the forces and of their moments |d_k| out_k (`_update_holding`).
-
-    `warm` (3, updated in place) holds the last tensionless solution's coefficients, NaN when
-    the last call was inside the kern: a pressure centre that moves beyond the kern from step
-    to step starts its Newton solve there (1-2 iterations instead of ~7 from the kern's
-    linear solution; the same convex problem and stopping rule)."""
-    rhs = np.empty(3)
-    coef = np.empty(3)
-    rhs[0], rhs[1], rhs[2] = W, W * cx, W * cy
-    _solve_spd3(wm, rhs, coef)
-    p_min, tot, mom = _pressure_into(dx, dy, a, r, coef, out, False)
-    if p_min >= 0.0:
-        warm[0] = np.nan
-        return tot, mom
-    if not np.isnan(warm[0]):
-        coef[:] = warm
-    _winkler_kernel(dx, dy, a, W, cx, cy, coef)
-    warm[:] = coef
-    _, tot, mom = _pressure_into(dx, dy, a, r, coef, out, True)
-    return tot, mom
-
-
-class WinklerPressure:
-    """Linear, tensionless pressure over the area samples with a given centre of pressure.
-
-    p_k = max(0, alpha + beta . d_k) (d_k: sample offset from the CoM) with sum p_k a_k = W and
-    sum p_k a_k d_k = W c: the pressure of a rigid plate on a uniform elastic foundation.
-    Inside the footprint's kern no sample is clipped and this is one 3x3 solve; outside it,
-    the convex problem of `_winkler_kernel`.
-    """
-
-    def __init__(self, d: np.ndarray, a: np.ndarray, weight_n: float) -> None:
-        self.d, self.a, self.W = d, a, weight_n
-        self._dx = np.ascontiguousarray(d[:, 0])
-        self._dy = np.ascontiguousarray(d[:, 1])
-        s0, s1, s2 = a.sum(), a @ d, (d * a[:, None]).T @ d
-        self._m = np.array(
-            [[s0, s1[0], s1[1]], [s1[0], s2[0, 0], s2[0, 1]], [s1[1], s2[1, 0], s2[1, 1]]]
-        )
-
-    def forces(self, c: np.ndarray) -> np.ndarray:
-        """Normal force of each sample (N) for a centre of pressure at c (offset from the CoM)."""
-        out = np.empty(self.a.shape[0])
-        r = np.hypot(self._dx, self._dy)
-        pressure_kernel(
-            self._dx, self._dy, self.a, r, self.W, self._m, float(c[0]), float(c[1]),
-            np.full(3, np.nan), out,
-        )  # fmt: skip
-        return out
-
-
 @functools.lru_cache(maxsize=64)
 def _cached_samples(outline: tuple, n_target: int) -> tuple[np.ndarray, np.ndarray]:
     return footprint_samples(np.array(outline, dtype=float), n_target)
@@ -458,15 +312,6 @@ def _cached_hulls(outline: tuple, n_target: int, com: tuple) -> tuple[np.ndarray
     hull = np.asarray(shapely.Polygon(np.array(outline, dtype=float)).convex_hull.exterior.coords)
     hull_n, hull_o = half_planes(hull[:-1] - c)
     return sample_n, sample_o, hull_n, hull_o
-
-
-def half_planes(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Outward unit normals n and offsets o of a convex polygon: inside is n . x <= o."""
-    if shapely.Polygon(hull).exterior.is_ccw is False:
-        hull = hull[::-1]
-    e = np.roll(hull, -1, axis=0) - hull
-    n = np.stack([e[:, 1], -e[:, 0]], axis=1) / np.hypot(e[:, 0], e[:, 1])[:, None]
-    return n, np.einsum("ij,ij->i", n, hull)
 
 
 class FrictionGeometry(NamedTuple):
@@ -538,9 +383,6 @@ def _update_holding(geo, fs, normal):
     _set_holding(geo, fs, tot, mom)
 
 
-COP_INSIDE_M = 1e-5  # how far inside the samples' hull a pressure centre is kept
-
-
 @njit(cache=True)
 def set_cop_kernel(geo, fs, normal, cx, cy):
     """Pressure (into `normal`) for a centre of pressure c (object frame, from the CoM);
@@ -551,16 +393,7 @@ def set_cop_kernel(geo, fs, normal, cx, cy):
     for i in range(geo.hull_o.shape[0]):
         if geo.hull_n[i, 0] * cx + geo.hull_n[i, 1] * cy - geo.hull_o[i] > 0.0:
             fs[TIPPED] = 1.0
-    k = 1.0
-    while k > 0:
-        worst = -np.inf
-        for i in range(geo.sample_hull_o.shape[0]):
-            v = geo.sample_hull_n[i, 0] * (k * cx) + geo.sample_hull_n[i, 1] * (k * cy)
-            worst = max(worst, v - geo.sample_hull_o[i])
-        if worst <= -COP_INSIDE_M:
-            break
-        k *= 0.95
-    cx, cy = k * cx, k * cy
+    cx, cy = inside_hull(geo.sample_hull_n, geo.sample_hull_o, cx, cy)
     # a 2 um move of the pressure centre changes nothing that matters: keep the pressure
     moved = math.hypot(cx - fs[COP_X], cy - fs[COP_Y]) > 2e-6
     nonzero = cx != 0.0 or cy != 0.0

@@ -50,8 +50,9 @@ from comexp.method.quasi_static import (
 )
 
 # The model's revision (with motion's, whose posterior it multiplies): pinned in fit episodes'
-# keys like motion's (`EstimatorSettings.motion_version`). fit-2: the contact's offset measured.
-FIT_VERSION = f"fit-2+{MOTION_VERSION}"
+# keys like motion's (`EstimatorSettings.motion_version`). fit-2: the contact's offset measured;
+# fit-3: the floor's pressure centred under the candidate CoM (its clipping had pulled it inward).
+FIT_VERSION = f"fit-3+{MOTION_VERSION}"
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,9 @@ hypothesis), so no prediction error accumulates along a push.
 
 The limit surface is the ellipsoid (f_x / a)^2 + (f_y / b)^2 + (m / c)^2 = 1 in the floor's axes,
 a = mu_1, b = mu_2 (normal force 1), c = the largest friction moment about the CoM,
-sum_i w_i |A (z x r_i)| with the pressure w linear over the footprint and centred at the CoM
-(the planar model's uniform-foundation pressure, without the shift of the forces' heights). A
+sum_i w_i |A (z x r_i)| with the pressure w linear, tensionless and centred under the CoM (the
+referee's Winkler pressure, `comexp.method.pressure`, without the shift the forces' heights give
+it). A
 twist is the ellipsoid's normal at the pusher's wrench: V = B J^T f, B = diag(1/a^2, 1/b^2,
 1/c^2). With contact velocity J V = M f (M = J B J^T), the pusher sticks when f = M^-1 v_p lies
 in its cone, else slides with f on the cone's edge and the contact's normal velocity matched.
@@ -31,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from comexp.method.frames import Pose2D
+from comexp.method.pressure import centred_pressure
 
 
 @dataclass(frozen=True)
@@ -185,15 +187,10 @@ def footprint_samples(outline_m: np.ndarray, n: int = 64) -> np.ndarray:
 
 
 def pressure_weights(samples: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """(nG, ns) normal forces of the footprint samples, summing to 1 per candidate: linear over
-    the footprint with its centre at G (a rigid plate on a uniform foundation), clipped at zero
-    (tensionless; G near an edge then carries a slightly outward-biased centre)."""
-    c0 = samples.mean(0)
-    d = samples - c0
-    S = d.T @ d / len(samples)
-    K = np.linalg.solve(S, (np.asarray(G) - c0).T).T  # (nG, 2)
-    w = np.maximum(1.0 + K @ d.T, 0.0)
-    return w / w.sum(1, keepdims=True)
+    """(nG, ns) normal forces of the footprint samples, summing to 1 per candidate: the
+    referee's pressure with its centre under G (a rigid plate on a uniform elastic foundation,
+    linear and tensionless: `comexp.method.pressure.centred_pressure`)."""
+    return centred_pressure(samples, G)
 
 
 @njit(cache=True)
