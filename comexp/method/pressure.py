@@ -6,8 +6,8 @@ balance) and for the quasi-static model the `fit` estimator reads slow pushes wi
 (`comexp.method.quasi_static.pressure_weights`, the centre under a candidate CoM): where the
 floor presses decides how its friction resists a twist, so the two must press alike. Clipping
 a linear pressure at zero without solving again moves its centre back toward the footprint's
-middle (by 3.5 mm for a CoM 1.6 cm off the middle of an 8 x 5 cm box): the tensionless problem
-is solved here instead.
+middle (a CoM at (4, 2) cm in a 10 x 6 cm box pressed as if at (1.9, 0.9) cm): the tensionless
+problem is solved here instead.
 """
 
 from __future__ import annotations

@@ -14,11 +14,12 @@ hypothesis), so no prediction error accumulates along a push.
 The limit surface is the ellipsoid (f_x / a)^2 + (f_y / b)^2 + (m / c)^2 = 1 in the floor's axes,
 a = mu_1, b = mu_2 (normal force 1), c = the largest friction moment about the CoM,
 sum_i w_i |A (z x r_i)| with the pressure w linear, tensionless and centred under the CoM (the
-referee's Winkler pressure, `comexp.method.pressure`, without the shift the forces' heights give
-it). A
-twist is the ellipsoid's normal at the pusher's wrench: V = B J^T f, B = diag(1/a^2, 1/b^2,
-1/c^2). With contact velocity J V = M f (M = J B J^T), the pusher sticks when f = M^-1 v_p lies
-in its cone, else slides with f on the cone's edge and the contact's normal velocity matched.
+referee's Winkler pressure, `comexp.method.pressure`, without the move the forces' heights give
+it). A twist is the ellipsoid's normal at the pusher's wrench: V = B J^T f, B = diag(1/a^2,
+1/b^2, 1/c^2). With contact velocity J V = M f (M = J B J^T), the pusher sticks when
+f = M^-1 v_p lies in its cone, else slides with f on the cone's edge and the contact's normal
+velocity matched. `tests/quasi_static_reference.py` solves the same push without the ellipsoid
+(docs/method.md, "What the ellipsoid leaves out").
 
 Frames: the estimator's (metres, y up, CCW positive; docs/method.md), floor angles in the world.
 """
