@@ -260,26 +260,35 @@ def test_the_referee_follows_the_exact_quasi_static_solution(
     assert exact == pytest.approx(observed, rel=0.10)
 
 
-@pytest.mark.parametrize("com", [(0.0, 0.0), (0.015, 0.008), (0.04, 0.02), (-0.045, 0.0)])
-def test_the_models_pressure_is_centred_under_each_candidate_com(com) -> None:
+@pytest.mark.parametrize(
+    ("com", "beyond_samples"),
+    [((0.0, 0.0), False), ((0.015, 0.008), False), ((0.04, 0.02), False), ((-0.048, 0.0), True)],
+)
+def test_the_models_pressure_is_centred_under_each_candidate_com(com, beyond_samples) -> None:
     """The floor's pressure under a candidate CoM: non-negative, summing to 1, its centre at
     the CoM, also where the linear pressure must be clipped (a CoM far off the middle). A
-    CoM beyond the samples' hull gets the centre the samples can carry nearest toward the
-    middle (the referee's rule). Clipping without solving again put the centre of a CoM at
-    (4, 2) cm at (1.9, 0.9) cm."""
+    CoM inside the outline but beyond the samples' hull gets the centre the samples can carry
+    on the way toward their middle (the referee's rule). Clipping without solving again put
+    the centre of a CoM at (4, 2) cm at (1.9, 0.9) cm."""
     samples = footprint_samples(BOX)
-    w = pressure_weights(samples, np.array([com]))[0]
+    com = np.array(com)
+    lo, hi = samples.min(0), samples.max(0)
+    assert np.all((lo < com) & (com < hi)) != beyond_samples  # the case is what it says
+    w = pressure_weights(samples, com[None])[0]
     assert w.min() >= 0.0 and w.sum() == pytest.approx(1.0)
     centre = w @ samples
-    lo, hi = samples.min(0), samples.max(0)
-    if np.all((lo < com) & (com < hi)):
+    if not beyond_samples:
         assert centre == pytest.approx(com, abs=1e-9)
         if abs(com[0]) > 0.03:
             assert (w == 0).any()  # the tensionless branch was taken
-    else:  # drawn toward the middle, inside the samples' hull
+    else:  # drawn toward the samples' middle, just inside their hull
+        middle = samples.mean(0)
         assert np.all((lo <= centre) & (centre <= hi))
-        assert np.cross(centre, com) == pytest.approx(0.0, abs=1e-12)
-        assert 0 < centre @ com < np.dot(com, com)
+        (ax, ay), (bx, by) = centre - middle, com - middle
+        assert ax * by - ay * bx == pytest.approx(0.0, abs=1e-12)  # on the way to the middle
+        assert 0 < (centre - middle) @ (com - middle) < (com - middle) @ (com - middle)
+        # as far out as the samples carry, to the rule's 5% steps
+        assert centre[0] <= lo[0] + 0.05 * np.linalg.norm(com - middle)
 
 
 def test_a_pusher_that_touches_early_is_measured_and_timed() -> None:
