@@ -156,13 +156,19 @@ PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
 
 
 def estimator_label(estimator_json: str) -> str:
-    """An episode's estimator as the tables name it: its method, and the model's revision when
-    it is not the one the code pins today (`PINNED_VERSIONS`), e.g. `fit (fit-1+motion-3)`."""
+    """An episode's estimator as the tables name it: its method, the model's revision when it
+    is not the one the code pins today (`PINNED_VERSIONS`), and what it was told rather than
+    measured, e.g. `fit (fit-1+motion-3)`, `fit (true nuisances, true poses)`."""
     est = json.loads(estimator_json)
     method, version = est["method"], est.get("motion_version") or ""
+    parts = []
     if version and version != PINNED_VERSIONS.get(method, version):
-        return f"{method} ({version})"
-    return method
+        parts.append(version)
+    if est.get("nuisance_source", "fitted") == "oracle":
+        parts.append("true nuisances")
+    if est.get("rotation_source", "vision") == "oracle":
+        parts.append("true poses")
+    return f"{method} ({', '.join(parts)})" if parts else method
 
 
 def methods(

@@ -702,3 +702,21 @@ def test_whole_commands_times_the_first_job_on_a_kept_ray():
     assert r.returncode == 0, r.stderr
     assert figure(r"\n\s+whole command\s+{n}", r.stdout) > 0
     assert re.search(r"new, kept Ray", r.stdout), r.stdout
+
+
+def test_the_tables_name_what_an_estimator_was_given_rather_than_measured():
+    """`estimator_label`: the method; an older revision; true nuisances and true poses (an
+    evaluation's told values), so that such jobs never pool with the measured ones."""
+    import docs_tables
+
+    from comexp.experiment.grid import PINNED_VERSIONS
+
+    label = docs_tables.estimator_label
+    fit = PINNED_VERSIONS["fit"]
+    assert label(json.dumps({"method": "fit", "motion_version": fit})) == "fit"
+    assert label(json.dumps({"method": "fit", "motion_version": "fit-1+motion-3"})) == (
+        "fit (fit-1+motion-3)"
+    )
+    told = {"method": "fit", "nuisance_source": "oracle", "rotation_source": "oracle"}
+    assert label(json.dumps(told)) == "fit (true nuisances, true poses)"
+    assert label(json.dumps({"method": "paper", "rotation_source": "vision"})) == "paper"

@@ -11,9 +11,9 @@ import pytest
 
 from comexp.method.estimator import EstimatorSettings, outline_contacts, region_from_outline
 from comexp.method.estimators import make_estimator
-from comexp.method.fit_estimator import FIT_VERSION, FitEstimator
+from comexp.method.fit_estimator import FIT_VERSION, FitEstimator, FitSettings
 from comexp.method.frames import Pose2D
-from comexp.method.motion_estimator import PushPath
+from comexp.method.motion_estimator import KnownNuisances, PushPath
 from comexp.method.quasi_static import (
     ContactStep,
     PusherDrive,
@@ -368,20 +368,24 @@ def _model_path(G, P, N, ratio, axis, mu, pose0, speed=0.04, travel=0.03, dt_fra
 def test_the_estimator_recovers_the_com_from_the_models_own_paths(ratio, axis) -> None:
     """Slow pushes simulated with the model (isotropic, and anisotropic with the slippery axis
     along y): `fit` lands within its model grid's spacing (two pixels) of the CoM, closer than
-    `motion` (measured: 3.2 and 2.4 mm; motion 13.1 mm on the first)."""
+    `motion` (measured: 3.2 and 2.4 mm; motion 13.1 mm on the first), and so it does when told
+    the floor and the pusher's friction (`nuisance_source=oracle`)."""
     G = np.array([0.018, -0.009])
     region = region_from_outline(BOX, PIXEL_M)
     contacts, normals = outline_contacts(BOX)
+    mu_xy = (1.0, 1.0) if ratio == 1.0 else (1.0, 0.1) if axis else (0.1, 1.0)
+    told = KnownNuisances(mu_xy, 0.5, 2e-3)
     errors = {}
-    for method in ("motion", "fit"):
+    for method in ("motion", "fit", "fit told"):
         est = make_estimator(
             region,
             contacts,
             normals,
             PIXEL_M,
-            EstimatorSettings(method=method),
+            EstimatorSettings(method=method.split()[0]),
             outline_m=BOX,
             pusher_radius_m=RADIUS_M,
+            nuisances=told if method.endswith("told") else None,
         )
         pose = Pose2D(0.0, 0.0, 0.3)
         for P, N in [
@@ -399,6 +403,23 @@ def test_the_estimator_recovers_the_com_from_the_models_own_paths(ratio, axis) -
         errors[method] = float(np.hypot(*(est.estimate_m - G)))
     assert errors["fit"] < 2 * PIXEL_M
     assert errors["fit"] < errors["motion"]
+    assert errors["fit told"] < 2 * PIXEL_M
+
+
+def test_told_the_nuisances_fit_keeps_one_floor_and_pusher_friction() -> None:
+    """`KnownNuisances`: the model's hypotheses are the told floor (here mu 0.1 along world y:
+    the low-friction axis at pi/2, ratio 10) and pusher friction; the turn gains stay (they
+    stand for the model's error)."""
+    region = region_from_outline(BOX, PIXEL_M)
+    contacts, normals = outline_contacts(BOX)
+    told = KnownNuisances((1.0, 0.1), 0.25, 2e-3)
+    est = FitEstimator(
+        region, contacts, normals, PIXEL_M, outline_m=BOX, pusher_radius_m=RADIUS_M, nuisances=told
+    )
+    assert est.ratios.tolist() == [10.0] and est.axes.tolist() == [math.pi / 2]
+    assert est.mu_p.tolist() == [0.25] and est.log_prior.tolist() == [0.0]
+    assert est.motion.known_floor == (math.pi / 2, 10.0)
+    assert len(est.gains) == len(FitSettings().turn_gains)
 
 
 def test_fit_is_a_built_in_method_with_its_version_in_the_key() -> None:

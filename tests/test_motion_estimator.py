@@ -501,3 +501,104 @@ def test_with_the_oracle_the_path_is_the_true_motion(monkeypatch) -> None:
     for true, tracked in common:  # the tracker's noise: tenths of a degree, a millimetre
         assert abs(math.degrees(true.yaw_rad - tracked.yaw_rad)) < 1.0
         assert math.hypot(true.x_m - tracked.x_m, true.y_m - tracked.y_m) < 0.002
+
+
+# --- told the nuisances (`nuisance_source=oracle`) ---------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("mu_xy", "floor"),
+    [((0.5, 0.5), (0.0, 1.0)), ((0.1, 1.0), (0.0, 10.0)), ((1.0, 0.1), (math.pi / 2, 10.0))],
+)
+def test_known_nuisances_write_the_floor_as_the_hypotheses_do(mu_xy, floor) -> None:
+    """The low-friction axis's world angle and the ratio, as `floor_hypotheses` writes them
+    (`test_the_slides_find_the_floor`: mu 0.1 along x is angle 0)."""
+    from comexp.method.motion_estimator import KnownNuisances
+
+    assert KnownNuisances(mu_xy, 0.5, 1e-3).floor == pytest.approx(floor)
+    with pytest.raises(ValueError, match="positive"):
+        KnownNuisances((0.0, 1.0), 0.5, 1e-3)
+
+
+def test_told_the_nuisances_motion_keeps_those_alone() -> None:
+    """Told the floor, pusher friction and rho^2, motion's hypotheses are those values only:
+    the slides weigh no other floor, mu_p and rho^2 are not profiled; untold, the same slides
+    weigh many floors."""
+    from comexp.method.motion_estimator import (
+        KnownNuisances,
+        _rho2_grid,
+        floor_hypotheses,
+        push_features,
+    )
+
+    told = KnownNuisances((1.0, 0.1), 0.25, 2.5e-3)
+    region = np.array([(x, y) for x in np.linspace(-0.04, 0.04, 9) for y in (-0.02, 0.0, 0.02)])
+    none = np.zeros((0, 2))
+    est = MotionEstimator(region, none, none, PIXEL_M, nuisances=told)
+    ms = est.motion
+    assert ms.mu_p_grid == (0.25,)
+    assert _rho2_grid(region, ms).tolist() == [2.5e-3]
+    dirs = [(0.4 * math.cos(a), 0.4 * math.sin(a)) for a in (0.5, 2.2, -1.0)]
+    feats = [push_features(_slide_path(v, 0.1, 1.0), (0, 0), (1, 0), 5.0, ms) for v in dirs]
+    assert floor_hypotheses(feats, ms) == [(math.pi / 2, 10.0, 0.0)]
+    assert len(floor_hypotheses(feats, MotionSettings())) > 1
+    assert len(_rho2_grid(region, MotionSettings())) == len(MotionSettings().rho2_scales)
+
+
+def test_nuisance_source_is_checked_and_only_for_motion_and_fit() -> None:
+    from comexp.method.motion_estimator import KnownNuisances
+
+    with pytest.raises(ValueError, match="nuisance_source must be one of"):
+        EstimatorSettings(method="motion", nuisance_source="true")
+    with pytest.raises(ValueError, match="needs method motion or fit"):
+        EstimatorSettings(method="paper", nuisance_source="oracle")
+    region = np.array([(0.0, 0.0), (0.01, 0.0), (0.0, 0.01)])
+    none = np.zeros((0, 2))
+    told = KnownNuisances((0.5, 0.5), 0.5, 1e-3)
+    with pytest.raises(ValueError, match="cannot be told"):
+        make_estimator(region, none, none, PIXEL_M, EstimatorSettings(), nuisances=told)
+
+
+def test_an_episode_tells_the_estimator_its_true_nuisances(monkeypatch) -> None:
+    """`nuisance_source=oracle`: the episode passes the scene's floor friction along x and y,
+    the pusher's friction and Izz / m about the CoM (the object's Izz times izz_scale); the
+    default passes nothing, and the field leaves the keys of episodes that do not set it."""
+    from dataclasses import replace
+
+    from test_episode import spec_for
+
+    import comexp.episode.loop as loop
+    from comexp.episode.loop import run_episode
+    from comexp.experiment.config import make_simulator
+    from comexp.results.identity import canonical_json
+    from comexp.sim.bodies import prism_object
+
+    seen = []
+    original = loop.make_estimator
+
+    def spy(*a, **k):
+        seen.append(k.get("nuisances"))
+        return original(*a, **k)
+
+    monkeypatch.setattr(loop, "make_estimator", spy)
+    spec = spec_for(method="motion", fps=30.0, mu=0.1)
+    spec = replace(
+        spec,
+        backend="planar",
+        floor="aniso",
+        mu_floor_y=1.0,
+        mu_pusher=0.25,
+        izz_scale=10.0,
+        estimator=replace(spec.estimator, n_push=1),
+    )
+    assert "nuisance_source" not in canonical_json(spec.estimator)
+    told = replace(spec, estimator=replace(spec.estimator, nuisance_source="oracle"))
+    for s in (spec, told):
+        res = run_episode(s, make_simulator("planar"))
+        assert res.status == "ok", (res.failure, res.detail)
+    assert seen[0] is None
+    k = seen[1]
+    outline = np.array(spec.outline_cm) / 100.0
+    obj = prism_object("o", outline, spec.height_cm / 100, np.array(spec.com_cm) / 100, 0.2, 10)
+    assert k.mu_floor_xy == (0.1, 1.0) and k.mu_pusher == 0.25
+    assert k.rho2_m2 == pytest.approx(obj.izz_kg_m2 / obj.mass_kg)

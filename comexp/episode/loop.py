@@ -30,7 +30,7 @@ from comexp.episode.timing import NO_TIMER, Timer
 from comexp.method.estimator import floor_force_direction
 from comexp.method.estimators import make_estimator
 from comexp.method.frames import Pose2D, wrap_angle
-from comexp.method.motion_estimator import PushPath
+from comexp.method.motion_estimator import KnownNuisances, PushPath
 from comexp.method.observation import (
     PerceptionError,
     mask_pusher,
@@ -116,6 +116,7 @@ class _EpisodeLoop:
             settings,
             outline_m=perc.outline_m,
             pusher_radius_m=self.scene.pusher.radius_m,
+            nuisances=self._known_nuisances(),
         )
         self.tracker = PoseTracker(perc, obs0) if settings.rotation_source == "vision" else None
         self.frame = perc.frame_pose  # current estimate of the estimator frame's pose in the world
@@ -135,6 +136,16 @@ class _EpisodeLoop:
         wall_s = time.perf_counter() - self.t0
         detail = "; ".join(self.details)
         return self.scoring.result(self.est.estimate_m, self.pushes, wall_s, self.sim_time, detail)
+
+    def _known_nuisances(self) -> KnownNuisances | None:
+        """The scene's floor, pusher friction and Izz / m about the CoM, for an estimator told
+        them (`nuisance_source=oracle`: evaluation); None otherwise."""
+        if self.settings.nuisance_source != "oracle":
+            return None
+        spec, obj = self.spec, self.scene.obj
+        return KnownNuisances(
+            (spec.mu_floor_x, spec.mu_floor_y), spec.mu_pusher, obj.izz_kg_m2 / obj.mass_kg
+        )
 
     def _push(self, k: int, P: np.ndarray, N: np.ndarray) -> EpisodeResult | None:
         """Push `k` through contact P along N (estimator frame), measure the turn, update the

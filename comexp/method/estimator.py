@@ -49,6 +49,9 @@ from comexp.method.geometry import ccw, centroid, simplify
 from comexp.method.observation import hull_region
 
 ROTATION_SOURCES = ("vision", "oracle")
+# where motion's and fit's nuisance parameters come from: marginalised over their hypotheses
+# (fitted), or the episode's true floor, pusher friction and Izz (oracle: the model's floor)
+NUISANCE_SOURCES = ("fitted", "oracle")
 D_METRICS = ("sine", "distance_px")
 # the built-in methods (`comexp.method.estimators.BUILT_IN` has their classes)
 METHODS = ("paper", "magnitude", "motion", "fit")
@@ -168,6 +171,17 @@ class EstimatorSettings:
             "help": "motion, fit: the model's revision in the episode key; empty: the current one",
         },
     )
+    # motion and fit: the floor (friction ratio and axes), the pusher's friction and Izz are
+    # nuisances the models marginalise; `oracle` tells them the episode's true values, which
+    # measures what is left when nothing is unknown but the CoM (docs/method.md)
+    nuisance_source: str = field(
+        default="fitted",
+        metadata={
+            "key_omit_default": True,
+            "help": "motion, fit: fitted (the floor, pusher friction and Izz marginalised) | "
+            "oracle (the episode's true ones: evaluation)",
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.rotation_source not in ROTATION_SOURCES:
@@ -197,6 +211,14 @@ class EstimatorSettings:
             # whether a plug-in can be used is `comexp.method.estimators.resolve_estimator`'s
             raise ValueError(
                 f"method must be one of {METHODS} or a plug-in 'module:Class', got {self.method!r}"
+            )
+        if self.nuisance_source not in NUISANCE_SOURCES:
+            raise ValueError(
+                f"nuisance_source must be one of {NUISANCE_SOURCES}, got {self.nuisance_source!r}"
+            )
+        if self.nuisance_source == "oracle" and self.method not in ("motion", "fit"):
+            raise ValueError(
+                f"nuisance_source=oracle needs method motion or fit, got {self.method!r}"
             )
         if not (math.isfinite(self.mag_noise_deg) and self.mag_noise_deg > 0):
             raise ValueError(f"mag_noise_deg must be > 0, got {self.mag_noise_deg!r}")

@@ -18,7 +18,7 @@ import numpy as np
 
 from comexp.method.estimator import METHODS, ComEstimator, EstimatorSettings, is_plugin
 from comexp.method.fit_estimator import FitEstimator
-from comexp.method.motion_estimator import MotionEstimator
+from comexp.method.motion_estimator import KnownNuisances, MotionEstimator
 
 # the built-in methods' classes: paper and magnitude are Algorithms 1 and 2 (magnitude also fits
 # how much each push turns), motion reads the tracked path of each push, fit also reads the
@@ -105,11 +105,16 @@ def make_estimator(
     settings: EstimatorSettings | None = None,
     outline_m: np.ndarray | None = None,
     pusher_radius_m: float | None = None,
+    nuisances: KnownNuisances | None = None,
 ) -> Estimator:
     """The estimator `settings.method` chooses (built-in `ComEstimator` or a plug-in class),
-    constructed with `ComEstimator`'s arguments."""
+    constructed with `ComEstimator`'s arguments; `nuisances` (`settings.nuisance_source=oracle`,
+    which only motion and fit accept) tells it the scene's floor, pusher friction and Izz."""
     settings = settings or EstimatorSettings()
     cls = resolve_estimator(settings.method)
+    told = {} if nuisances is None else {"nuisances": nuisances}
+    if told and cls not in (MotionEstimator, FitEstimator):
+        raise ValueError(f"method {settings.method!r} cannot be told the nuisances")
     return cls(
         region_m,
         contacts_m,
@@ -118,4 +123,5 @@ def make_estimator(
         settings,
         outline_m=outline_m,
         pusher_radius_m=pusher_radius_m,
+        **told,
     )

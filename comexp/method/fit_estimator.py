@@ -8,7 +8,8 @@ middle, the contact that pose gives, and a hypothesis (CoM, floor, pusher fricti
 The nuisance hypotheses are marginalised: the floor isotropic (prior `iso_prior`), or
 anisotropic with the ratio `floor_ratios` across an axis at one of `floor_angles` directions; the
 pusher's friction on `mu_p_grid`; the turn's gain on `turn_gains` (an object slow to spin up,
-Izz x 10 on a slippery floor, turns less than the inertia-free model says). Floors whose evidence
+Izz x 10 on a slippery floor, turns less than the inertia-free model says). Told the floor and
+the pusher's friction (`KnownNuisances`), it keeps those alone. Floors whose evidence
 falls `prune_log` below the best are no longer evaluated; a push's evidence against any
 hypothesis is capped at `push_max_log` (its intervals share one contact and one model error).
 
@@ -33,6 +34,7 @@ import numpy as np
 from comexp.method.estimator import EstimatorSettings, line_cuts_region, region_from_outline
 from comexp.method.motion_estimator import (
     MOTION_VERSION,
+    KnownNuisances,
     MotionEstimator,
     MotionPush,
     MotionSettings,
@@ -101,6 +103,7 @@ class FitEstimator(MotionEstimator):
         pusher_radius_m: float | None = None,
         motion: MotionSettings | None = None,
         fit: FitSettings | None = None,
+        nuisances: KnownNuisances | None = None,
     ) -> None:
         super().__init__(
             region_m,
@@ -111,6 +114,7 @@ class FitEstimator(MotionEstimator):
             outline_m=outline_m,
             pusher_radius_m=pusher_radius_m,
             motion=motion,
+            nuisances=nuisances,
         )
         fs = self.fit = fit or FitSettings()
         self.outline = None if outline_m is None else np.asarray(outline_m, dtype=float)
@@ -124,12 +128,19 @@ class FitEstimator(MotionEstimator):
         self.pressure = pressure_weights(self.samples, self.coarse)
         angles = [math.pi * k / fs.floor_angles for k in range(fs.floor_angles)]
         floors = [(1.0, 0.0)] + [(r, a) for r in fs.floor_ratios for a in angles]
+        mu_p = fs.mu_p_grid
+        if nuisances is not None:  # told: the one floor and pusher friction (the gains stay:
+            # they stand for the model's error, not for a parameter of the scene)
+            angle, ratio = nuisances.floor
+            floors, mu_p = [(ratio, angle)], (nuisances.mu_pusher,)
         self.ratios = np.array([r for r, _ in floors])
         self.axes = np.array([a for _, a in floors])
         self.active = np.ones(len(floors), dtype=np.bool_)
         aniso = (1.0 - fs.iso_prior) / max(len(floors) - 1, 1)
         self.log_prior = np.log(np.where(self.ratios == 1.0, fs.iso_prior, aniso))
-        self.mu_p = np.asarray(fs.mu_p_grid, dtype=float)
+        if len(floors) == 1:
+            self.log_prior = np.zeros(1)
+        self.mu_p = np.asarray(mu_p, dtype=float)
         self.gains = np.asarray(fs.turn_gains, dtype=float)
         self.loglik = np.zeros((len(self.coarse), len(floors), len(self.mu_p), len(self.gains)))
         self.steps_used = 0

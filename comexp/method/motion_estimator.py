@@ -185,6 +185,46 @@ class MotionSettings:
     # Algorithm 1 scores each candidate push by its expected line of action under the best
     # floor hypothesis and pusher friction so far (`MotionEstimator.next_push`), not by N
     floor_choice: bool = True
+    # told, not fitted (`KnownNuisances`): the floor as (world angle of its low-friction axis,
+    # mu_high / mu_low; 1: isotropic), which replaces the slides' hypotheses, and rho^2 = Izz / m
+    # about the CoM (m^2), which replaces the rho2_scales grid
+    known_floor: tuple[float, float] | None = None
+    known_rho2_m2: float | None = None
+
+
+@dataclass(frozen=True)
+class KnownNuisances:
+    """What `motion` and `fit` otherwise marginalise, told: the floor's friction along the
+    world's x and y (the study's floors have their axes there), the pusher's friction and
+    rho^2 = Izz / m about the CoM (m^2). An episode with `nuisance_source=oracle` passes its
+    true ones, which measures the models' error when only the CoM is unknown."""
+
+    mu_floor_xy: tuple[float, float]
+    mu_pusher: float
+    rho2_m2: float
+
+    def __post_init__(self) -> None:
+        mx, my = self.mu_floor_xy
+        if not (mx > 0 and my > 0 and self.mu_pusher >= 0 and self.rho2_m2 > 0):
+            raise ValueError(f"known nuisances must be positive, got {self}")
+
+    @property
+    def floor(self) -> tuple[float, float]:
+        """(world angle of the low-friction axis, mu_high / mu_low), as the models' floor
+        hypotheses are written; an isotropic floor is (0, 1)."""
+        mx, my = self.mu_floor_xy
+        if mx == my:
+            return 0.0, 1.0
+        return (0.0, my / mx) if mx < my else (math.pi / 2, mx / my)
+
+    def settings(self, ms: MotionSettings) -> MotionSettings:
+        """`ms` with these values in place of their hypotheses."""
+        return replace(
+            ms,
+            mu_p_grid=(float(self.mu_pusher),),
+            known_floor=self.floor,
+            known_rho2_m2=float(self.rho2_m2),
+        )
 
 
 @dataclass(frozen=True)
@@ -411,9 +451,13 @@ def floor_loglik(feats: list[PushFeatures], ms: MotionSettings) -> np.ndarray:
 
 def floor_hypotheses(feats: list[PushFeatures], ms: MotionSettings):
     """[(angle, ratio, log weight)]: the isotropic floor (ratio 1) and the anisotropic ones
-    whose weight is at least floor_prune of the best, weights normalised over those kept."""
+    whose weight is at least floor_prune of the best, weights normalised over those kept; the
+    known floor alone when `ms.known_floor` is set."""
     from scipy.special import logsumexp
 
+    if ms.known_floor is not None:
+        angle, ratio = ms.known_floor
+        return [(float(angle), float(ratio), 0.0)]
     ll = floor_loglik(feats, ms)
     n_aniso = ll.size
     lp = math.log((1 - ms.floor_iso_prior) / n_aniso) if n_aniso else -math.inf
@@ -508,6 +552,8 @@ def floor_mixture_loglik(
 
 
 def _rho2_grid(foot: np.ndarray, ms: MotionSettings) -> np.ndarray:
+    if ms.known_rho2_m2 is not None:
+        return np.array([ms.known_rho2_m2])
     c = foot.mean(axis=0)
     return ((foot - c) ** 2).sum(axis=1).mean() * np.asarray(ms.rho2_scales)
 
@@ -548,9 +594,10 @@ def motion_posterior(
     on the same G and growing `feats` (the floor mixture's per-push sign terms)."""
     foot = np.asarray(footprint, dtype=float)
     early, direction, sign = sums if sums is not None else push_logliks(G, foot, feats, ms)
-    # the floor model needs a slide to go on (none at 4 cm/s: slides under floor_min_slide_m);
-    # without one the anisotropic hypotheses only add freedom, and motion-1's terms are used
-    if ms.use_floor and any(f.slide is not None for f in feats):
+    # the floor model needs a slide to go on (none at 4 cm/s: slides under floor_min_slide_m)
+    # or a known floor; without either the anisotropic hypotheses only add freedom, and
+    # motion-1's terms are used
+    if ms.use_floor and (ms.known_floor is not None or any(f.slide is not None for f in feats)):
         e = early.max(axis=1)
         ll = e + floor_mixture_loglik(G, foot, feats, direction, ms, base=e, cache=cache)
         p = np.exp(ll - ll.max())
@@ -598,9 +645,12 @@ class MotionEstimator:
         outline_m: np.ndarray | None = None,
         pusher_radius_m: float | None = None,
         motion: MotionSettings | None = None,
+        nuisances: KnownNuisances | None = None,
     ) -> None:
         self.settings = settings or EstimatorSettings(method="motion")
         self.motion = motion or MotionSettings()
+        if nuisances is not None:
+            self.motion = nuisances.settings(self.motion)
         self.pixel_m = float(pixel_m)
         self.footprint = np.asarray(region_m, dtype=float).reshape(-1, 2)
         self.points = refine_grid(self.footprint, self.pixel_m)
