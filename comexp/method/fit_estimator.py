@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from comexp.method.estimator import EstimatorSettings, line_cuts_region, region_from_outline
+from comexp.method.geometry import douglas_peucker
 from comexp.method.motion_estimator import (
     MOTION_VERSION,
     KnownNuisances,
@@ -42,19 +43,25 @@ from comexp.method.motion_estimator import (
     estimate_from_paths,
 )
 from comexp.method.quasi_static import (
+    MOMENT_ANGLES,
     ContactStep,
     PusherDrive,
+    RolloutPush,
     add_step_loglik,
     footprint_samples,
+    moment_table,
     predict_step,
     pressure_weights,
+    rollout_losses,
+    rollout_push,
     step_array,
 )
 
 # The model's revision (with motion's, whose posterior it multiplies): pinned in fit episodes'
 # keys like motion's (`EstimatorSettings.motion_version`). fit-2: the contact's offset measured;
-# fit-3: the floor's pressure centred under the candidate CoM (its clipping had pulled it inward).
-FIT_VERSION = f"fit-3+{MOTION_VERSION}"
+# fit-3: the floor's pressure centred under the candidate CoM (its clipping had pulled it inward);
+# fit-4: the estimate refined by the rollout reading.
+FIT_VERSION = f"fit-4+{MOTION_VERSION}"
 
 
 @dataclass(frozen=True)
@@ -86,6 +93,21 @@ class FitSettings:
     # across the posterior's `info_points` likeliest CoMs (the best nuisance hypothesis)
     choose_for_information: bool = True
     info_points: int = 48
+    # the rollout reading: every slow push replayed through the same model from its start pose
+    # (`quasi_static.rollout_losses`), its rest pose (and, weighted `rollout_path_weight`, its
+    # tracked poses) against what was seen; False: the intervals alone
+    rollout: bool = True
+    rollout_rel_model: float = 0.2  # the rollout's error relative to the motion it predicts
+    rollout_path_weight: float = 0.0
+    rollout_step_m: float = 0.001  # the pusher's travel per integration step
+    # the nuisance hypotheses it marginalises: each push screens every one at the
+    # `rollout_screen_points` likeliest CoMs; those within `rollout_screen_log` of the best
+    # (at most `rollout_hypotheses`) are rolled out at every CoM of the model's grid
+    rollout_screen_points: int = 3
+    rollout_screen_log: float = 10.0
+    rollout_hypotheses: int = 6
+    rollout_mass: float = 0.999  # ... at the grid points holding this much of the posterior
+    rollout_outline_tol_m: float = 0.0001  # the outline it rolls against, simplified this far
 
 
 class FitEstimator(MotionEstimator):
@@ -158,6 +180,16 @@ class FitEstimator(MotionEstimator):
                 fs.rel_model,
             ]
         )
+        # the rollout reading's state: the slow pushes, the estimate it gives (per push count)
+        self._rollouts: list[RolloutPush] = []
+        self._rolled: tuple[int, np.ndarray] | None = None
+        self._table: np.ndarray | None = None
+        self._roll_outline = (
+            None
+            if self.outline is None
+            else douglas_peucker(self.outline, fs.rollout_outline_tol_m)
+        )
+        self.rollouts_run = 0  # rollouts evaluated (cost accounting: bench, tests)
 
     def observe(
         self,
@@ -166,20 +198,48 @@ class FitEstimator(MotionEstimator):
         rotation_deg: float,
         line_direction: np.ndarray | None = None,
     ) -> str:
-        """`motion`'s update, then the push's quasi-static intervals (a slow push's)."""
+        """`motion`'s update, then a slow push's quasi-static intervals and its rollout; the
+        posterior is `motion`'s times both readings' evidence over every slow push so far."""
         path = self._path
         label = super().observe(contact_m, direction, rotation_deg, line_direction)
         fs = self.fit
-        if (
+        steps: list[ContactStep] = []
+        self._slow = not (
             path is None
             or self.outline is None
             or self.pusher_radius_m is None
             or path.t_end_s is None
             or not path.speed_m_s <= fs.max_speed_m_s
-        ):
-            self._slow = False
-            return label
-        self._slow = True
+        )
+        if self._slow:
+            steps = self._read_slow_push(path, contact_m, direction)
+        if self.steps_used:
+            from scipy.special import logsumexp
+
+            ll = np.log(self.weights + 1e-300)
+            if self.steps_used:
+                self._prune()
+                n = len(self.coarse)
+                prior = self.log_prior[None, self.active, None, None]
+                qs = logsumexp((self.loglik[:, self.active] + prior).reshape(n, -1), axis=1)
+                ll += fs.weight * qs[self.to_coarse]
+            p = np.exp(ll - ll.max())
+            self.weights = p / p.sum()
+        return f"{label}-qs" if steps and len(label) <= 13 else label
+
+    @property
+    def estimate_m(self) -> np.ndarray:
+        """The posterior's mean, refined by the rollout reading once slow pushes were seen."""
+        if not self._rollouts:
+            return self.weights @ self.points
+        if self._rolled is None or self._rolled[0] != len(self._rollouts):
+            self._rolled = (len(self._rollouts), self._rollout_weights() @ self.points)
+        return self._rolled[1].copy()
+
+    def _read_slow_push(self, path, contact_m, direction) -> list[ContactStep]:
+        """Adds a slow push's intervals to `loglik` and keeps it for the rollout; returns
+        the intervals read."""
+        fs = self.fit
         self._travel_m = max(0.0, (path.t_end_s - path.t_contact_s) * path.speed_m_s)
         drive = PusherDrive(
             path.pose_before,
@@ -218,17 +278,101 @@ class FitEstimator(MotionEstimator):
             best = push_ll[:, idx].max()
             self.loglik += np.maximum(push_ll, best - fs.push_max_log)
         self.steps_used += len(steps)
-        if self.steps_used:
-            from scipy.special import logsumexp
+        if fs.rollout:
+            end = path.poses[-1] if path.extra.get("recentred") and path.poses else path.pose_after
+            push = rollout_push(drive, end, offset)
+            if push is not None:
+                self._rollouts.append(push)
+        return steps
 
-            self._prune()
-            n = len(self.coarse)
-            prior = self.log_prior[None, self.active, None, None]
-            qs = logsumexp((self.loglik[:, self.active] + prior).reshape(n, -1), axis=1)
-            ll = np.log(self.weights + 1e-300) + fs.weight * qs[self.to_coarse]
-            p = np.exp(ll - ll.max())
-            self.weights = p / p.sum()
-        return f"{label}-qs" if steps and len(label) <= 13 else label
+    # --- the rollout reading ------------------------------------------------------------------
+
+    def _hypotheses(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every (floor, pusher friction) pair: ratio, world axis, friction, and the index of
+        its ratio in the moment table's ratios (hypothesis h = floor * len(mu_p) + friction)."""
+        nm = len(self.mu_p)
+        ratios = np.repeat(self.ratios, nm)
+        axes = np.repeat(self.axes, nm)
+        mus = np.tile(self.mu_p, len(self.ratios))
+        index = np.searchsorted(np.unique(self.ratios), ratios)
+        return ratios, axes, mus, index
+
+    def _losses(self, k: int, g: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Push k's rollout losses for the (candidate, hypothesis) pairs (g[i], h[i])."""
+        if self._table is None:
+            self._table = moment_table(
+                self.samples, self.pressure, self.coarse, np.unique(self.ratios), MOMENT_ANGLES
+            )
+        ratios, axes, mus, index = self._hypotheses()
+        p, fs, ms = self._rollouts[k], self.fit, self.motion
+        noise = np.array(
+            [
+                math.sqrt(2) * ms.sigma_move_m,  # the start's and the end's errors
+                math.sqrt(2) * math.radians(ms.sigma_turn_deg),
+                fs.rollout_rel_model,
+            ]
+        )
+        packed = np.array(
+            [*p.pose0, *p.start_m, *p.direction, p.speed_m_s, p.duration_s, p.radius_m]
+        )
+        out = np.empty(len(g))
+        rollout_losses(
+            self._roll_outline,
+            self.coarse,
+            self._table,
+            ratios,
+            axes,
+            mus,
+            index,
+            np.ascontiguousarray(g, dtype=np.int64),
+            np.ascontiguousarray(h, dtype=np.int64),
+            packed,
+            p.t_s,
+            p.poses,
+            p.end,
+            noise,
+            fs.rollout_path_weight,
+            fs.rollout_step_m,
+            out,
+        )
+        self.rollouts_run += len(g)
+        return out
+
+    def _rollout_weights(self) -> np.ndarray:
+        """The posterior times the rollout reading's evidence: every hypothesis (floor, pusher
+        friction) is screened, all slow pushes rolled out at the `rollout_screen_points`
+        likeliest CoMs; the best (`rollout_screen_log`, at most `rollout_hypotheses`) are
+        rolled out at the grid's CoMs that hold `rollout_mass` of the posterior (the rest keep
+        none) and marginalised under their prior."""
+        from scipy.special import logsumexp
+
+        fs = self.fit
+        nm, n = len(self.mu_p), len(self.coarse)
+        nh = len(self.ratios) * nm
+        log_prior = np.repeat(self.log_prior, nm) - math.log(nm)
+        mass = np.bincount(self.to_coarse, weights=self.weights, minlength=n)
+        kept = np.arange(nh)
+        if nh > 1:
+            top = np.argsort(mass)[::-1][: fs.rollout_screen_points]
+            g, h = np.repeat(top, nh), np.tile(np.arange(nh), len(top))
+            loss = sum(self._losses(k, g, h) for k in range(len(self._rollouts)))
+            ll = np.log(mass[top] + 1e-300)[:, None] - 0.5 * loss.reshape(len(top), nh)
+            ev = logsumexp(ll, axis=0) + log_prior
+            order = np.argsort(ev)[::-1][: fs.rollout_hypotheses]
+            kept = order[ev[order] >= ev[order[0]] - fs.rollout_screen_log]
+        order = np.argsort(mass)[::-1]
+        held = np.searchsorted(np.cumsum(mass[order]), fs.rollout_mass * mass.sum()) + 1
+        live = np.sort(order[:held])  # the grid points that hold the posterior
+        ll = np.empty((len(kept), len(live)))
+        for i, j in enumerate(kept):
+            h = np.full(len(live), j)
+            loss = sum(self._losses(k, live, h) for k in range(len(self._rollouts)))
+            ll[i] = log_prior[j] - 0.5 * loss
+        term = np.full(n, -np.inf)
+        term[live] = logsumexp(ll, axis=0)
+        lw = np.log(self.weights + 1e-300) + term[self.to_coarse]
+        p = np.exp(lw - lw.max())
+        return p / p.sum()
 
     def next_push(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Algorithm 1 against the posterior (`motion`'s), or, after a slow push on a floor the

@@ -140,6 +140,37 @@ def simplify(poly: Sequence[Sequence[float]], tol: float = 1e-9) -> np.ndarray:
     return p
 
 
+def douglas_peucker(poly: Sequence[Sequence[float]], tol: float) -> np.ndarray:
+    """The closed polygon's vertices that keep it within `tol` of the original (Ramer-Douglas-
+    Peucker on the two chains between vertex 0 and the vertex farthest from it): a traced
+    outline's pixel staircase, a hundred vertices, becomes its corners and curves."""
+    p = as_array(poly)
+    if len(p) <= 4:
+        return p
+    far = int(np.argmax(np.hypot(*(p - p[0]).T)))
+    keep = np.zeros(len(p), dtype=bool)
+    keep[[0, far]] = True
+    stack = [(0, far), (far, len(p))]
+    while stack:
+        i, j = stack.pop()
+        a, b = p[i], p[j % len(p)]
+        if j - i < 2:
+            continue
+        seg = b - a
+        rel = p[i + 1 : j] - a
+        length = float(np.hypot(*seg))
+        if length > 0:
+            d = np.abs(seg[0] * rel[:, 1] - seg[1] * rel[:, 0]) / length
+        else:
+            d = np.hypot(*rel.T)
+        k = int(np.argmax(d))
+        if d[k] > tol:
+            m = i + 1 + k
+            keep[m] = True
+            stack += [(i, m), (m, j)]
+    return p[keep]
+
+
 def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
 

@@ -350,3 +350,253 @@ def step_array(step: ContactStep) -> np.ndarray:
             step.d_yaw,
         ]
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# the same model integrated along a push (`FitEstimator`'s rollout reading)
+
+
+@dataclass(frozen=True, eq=False)
+class RolloutPush:
+    """One slow push as the rollout replays it, world frame: the object frame's pose before it
+    (x, y, yaw), the pusher disc's centre when it touches and its world direction and speed,
+    how long it drives after touching, the disc's radius (the measured offset included), and
+    what the camera saw: the poses (x, y, unwrapped yaw) at `t_s` after the touch while it
+    drove, and where the object came to rest."""
+
+    pose0: np.ndarray  # (3,)
+    start_m: np.ndarray  # (2,)
+    direction: np.ndarray  # (2,) unit, world
+    speed_m_s: float
+    duration_s: float
+    radius_m: float
+    t_s: np.ndarray  # (nf,)
+    poses: np.ndarray  # (nf, 3)
+    end: np.ndarray  # (3,)
+
+
+def rollout_push(drive: PusherDrive, end: Pose2D, offset_m: float = 0.0) -> RolloutPush | None:
+    """`drive` as the rollout replays it, its disc `offset_m` larger and touching that much
+    earlier (as `PusherDrive.steps`), ending at rest at `end`; None for a push without
+    driving time."""
+    radius = drive.pusher_radius_m + offset_m
+    t_touch = drive.t_contact_s - (offset_m / drive.speed_m_s if drive.speed_m_s > 0 else 0.0)
+    duration = drive.t_end_s - t_touch
+    if not duration > 0 or not drive.speed_m_s > 0:
+        return None
+    N = np.asarray(drive.direction, dtype=float)
+    N = N / np.linalg.norm(N)
+    b = drive.pose_before
+    c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+    yaw = b.yaw_rad
+    t, poses = [], []
+    for ti, p in zip(drive.t_s, drive.poses, strict=True):
+        yaw += math.remainder(p.yaw_rad - yaw, math.tau)
+        if t_touch < ti <= drive.t_end_s:
+            t.append(ti - t_touch)
+            poses.append((p.x_m, p.y_m, yaw))
+    end_yaw = yaw + math.remainder(end.yaw_rad - yaw, math.tau)
+    return RolloutPush(
+        np.array([b.x_m, b.y_m, b.yaw_rad]),
+        b.to_world(np.asarray(drive.contact_m, dtype=float) - radius * N),
+        np.array([c * N[0] - s * N[1], s * N[0] + c * N[1]]),
+        float(drive.speed_m_s),
+        float(duration),
+        float(radius),
+        np.array(t, dtype=float),
+        np.array(poses, dtype=float).reshape(-1, 3),
+        np.array([end.x_m, end.y_m, end_yaw]),
+    )
+
+
+MOMENT_ANGLES = 36  # the limit surface's moment tabulated over the floor's axis, per pi
+
+
+@njit(cache=True)
+def moment_table(samples, weights, G, ratios, n_angles):
+    """(nG, nratio, n_angles + 1): `_moment` about each candidate for a floor of each ratio
+    whose axis lies at k pi / n_angles in the object frame (the last column repeats the first:
+    the moment has period pi)."""
+    out = np.empty((G.shape[0], ratios.shape[0], n_angles + 1))
+    for g in range(G.shape[0]):
+        for r in range(ratios.shape[0]):
+            for k in range(n_angles):
+                a = math.pi * k / n_angles
+                out[g, r, k] = _moment(
+                    samples, weights[g], G[g, 0], G[g, 1], ratios[r], math.cos(a), math.sin(a)
+                )
+            out[g, r, n_angles] = out[g, r, 0]
+    return out
+
+
+@njit(cache=True)
+def _closest_edge_point(qx, qy, outline):
+    """`_closest_on_outline`, compiled: (x, y, distance, inside)."""
+    n = outline.shape[0]
+    best, bx, by = 1e30, 0.0, 0.0
+    inside = False
+    for i in range(n):
+        ax, ay = outline[i, 0], outline[i, 1]
+        j = i + 1 if i + 1 < n else 0
+        cx, cy = outline[j, 0], outline[j, 1]
+        ex, ey = cx - ax, cy - ay
+        t = ((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-30)
+        t = min(1.0, max(0.0, t))
+        px, py = ax + t * ex, ay + t * ey
+        d = math.hypot(px - qx, py - qy)
+        if d < best:
+            best, bx, by = d, px, py
+        if (ay > qy) != (cy > qy) and qx < ax + (qy - ay) * (cx - ax) / (cy - ay):
+            inside = not inside
+    return bx, by, best, inside
+
+
+NEAR_EDGES = 4  # the edges either side of the last contact's searched first
+
+
+@njit(cache=True)
+def _edge_point(qx, qy, outline, i):
+    """The point of edge i (vertex i to i + 1) closest to q, and its distance."""
+    n = outline.shape[0]
+    j = i + 1 if i + 1 < n else 0
+    ax, ay = outline[i, 0], outline[i, 1]
+    ex, ey = outline[j, 0] - ax, outline[j, 1] - ay
+    t = ((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-30)
+    t = min(1.0, max(0.0, t))
+    px, py = ax + t * ex, ay + t * ey
+    return px, py, math.hypot(px - qx, py - qy)
+
+
+@njit(cache=True)
+def _closest_near(qx, qy, outline, last, radius):
+    """`_closest_edge_point` searched first among the edges next to `last` (the pusher moves
+    little between steps): (x, y, distance, inside, edge). The whole outline is searched when
+    the best is at the window's end, or the disc's centre came within half its radius (where
+    inside matters)."""
+    n = outline.shape[0]
+    if last >= 0 and n > 2 * NEAR_EDGES + 1:
+        best, bx, by, bi = 1e30, 0.0, 0.0, -1
+        for o in range(-NEAR_EDGES, NEAR_EDGES + 1):
+            i = (last + o) % n
+            px, py, d = _edge_point(qx, qy, outline, i)
+            if d < best:
+                best, bx, by, bi = d, px, py, o
+        if abs(bi) < NEAR_EDGES and best > 0.5 * radius:
+            return bx, by, best, False, (last + bi) % n
+    best, bx, by, bi = 1e30, 0.0, 0.0, 0
+    for i in range(n):
+        px, py, d = _edge_point(qx, qy, outline, i)
+        if d < best:
+            best, bx, by, bi = d, px, py, i
+    _, _, _, inside = _closest_edge_point(qx, qy, outline)
+    return bx, by, best, inside, bi
+
+
+@njit(cache=True)
+def _rollout(outline, table_row, gx, gy, ratio, axis_w, mu, push, step_m, t_s, out):
+    """Drives the model through one push for one hypothesis; writes the poses at `t_s` (after
+    the touch; sorted) to out[:-1] and the final pose to out[-1]. push = (x0, y0, yaw0, sx,
+    sy, dx, dy, speed, duration, radius). The pusher advances `step_m` per step; while its
+    disc overlaps the outline the object moves with the model's twist for the pusher's
+    velocity plus the overlap taken back within the step (so that no drift accumulates)."""
+    x, y, th, sx, sy, dx, dy, speed, duration, radius = push
+    n_angles = table_row.shape[0] - 1
+    nsteps = max(1, int(math.ceil(duration * speed / step_m)))
+    h = duration / nsteps
+    fi = 0
+    edge = -1
+    for k in range(nsteps):
+        while fi < t_s.shape[0] and t_s[fi] <= k * h:
+            out[fi, 0], out[fi, 1], out[fi, 2] = x, y, th
+            fi += 1
+        t = (k + 0.5) * h
+        c, s = math.cos(th), math.sin(th)
+        wx, wy = sx + dx * speed * t - x, sy + dy * speed * t - y
+        qx, qy = c * wx + s * wy, -s * wx + c * wy
+        px, py, dist, inside, edge = _closest_near(qx, qy, outline, edge, radius)
+        if inside or dist < 1e-9 or dist >= radius:
+            continue
+        nx, ny = (px - qx) / dist, (py - qy) / dist
+        vx = (c * dx + s * dy) * speed
+        vy = (-s * dx + c * dy) * speed
+        if vx * nx + vy * ny <= 0:
+            continue
+        overlap = (radius - dist) / h
+        vx += nx * overlap
+        vy += ny * overlap
+        axis = axis_w - th
+        u = (axis / math.pi) % 1.0 * n_angles
+        i = min(int(u), n_angles - 1)
+        f = u - i
+        cm = table_row[i] * (1.0 - f) + table_row[i + 1] * f
+        ux, uy, om = _predict(cm, gx, gy, ratio, axis, mu, px, py, nx, ny, vx, vy)
+        x += (c * ux - s * uy) * h
+        y += (s * ux + c * uy) * h
+        th += om * h
+    while fi < t_s.shape[0]:
+        out[fi, 0], out[fi, 1], out[fi, 2] = x, y, th
+        fi += 1
+    out[-1, 0], out[-1, 1], out[-1, 2] = x, y, th
+
+
+@njit(cache=True)
+def _pose_term(p, q, pose0, sd, st, rel):
+    """-2 log-likelihood (without constants) of observing q where the model puts p, both
+    reached from pose0: vision's noise plus the model's error relative to the motion."""
+    ex, ey, et = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+    mx, my, mt = p[0] - pose0[0], p[1] - pose0[1], p[2] - pose0[2]
+    vd = sd * sd + rel * rel * (mx * mx + my * my)
+    vt = st * st + rel * rel * mt * mt
+    return (ex * ex + ey * ey) / vd + et * et / vt
+
+
+@njit(cache=True)
+def rollout_losses(
+    outline,
+    G,
+    table,
+    hyp_ratio,
+    hyp_axis,
+    hyp_mu,
+    ratio_index,
+    g_idx,
+    h_idx,
+    push,
+    t_s,
+    observed,
+    end,
+    noise,
+    path_weight,
+    step_m,
+    out,
+):
+    """out[i] = the push's loss (-2 log-likelihood) for candidate G[g_idx[i]] under hypothesis
+    h_idx[i] (floor ratio and world axis, pusher friction; its ratio's column of `table`):
+    the rolled-out rest pose against `end`, plus `path_weight` times the mean over the
+    tracked poses `observed` (at `t_s`). noise = (sigma_move_m, sigma_turn_rad, rel_model)."""
+    sd, st, rel = noise[0], noise[1], noise[2]
+    nf = t_s.shape[0]
+    poses = np.empty((nf + 1, 3))
+    pose0 = push[:3]
+    for i in range(g_idx.shape[0]):
+        g, h = g_idx[i], h_idx[i]
+        _rollout(
+            outline,
+            table[g, ratio_index[h]],
+            G[g, 0],
+            G[g, 1],
+            hyp_ratio[h],
+            hyp_axis[h],
+            hyp_mu[h],
+            push,
+            step_m,
+            t_s,
+            poses,
+        )
+        loss = _pose_term(poses[nf], end, pose0, sd, st, rel)
+        if nf > 0 and path_weight > 0:
+            acc = 0.0
+            for f in range(nf):
+                acc += _pose_term(poses[f], observed[f], pose0, sd, st, rel)
+            loss += path_weight * acc / nf
+        out[i] = loss
