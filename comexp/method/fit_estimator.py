@@ -312,9 +312,6 @@ class FitEstimator(MotionEstimator):
                 fs.rollout_rel_model,
             ]
         )
-        packed = np.array(
-            [*p.pose0, *p.start_m, *p.direction, p.speed_m_s, p.duration_s, p.radius_m]
-        )
         out = np.empty(len(g))
         rollout_losses(
             self._roll_outline,
@@ -326,7 +323,7 @@ class FitEstimator(MotionEstimator):
             index,
             np.ascontiguousarray(g, dtype=np.int64),
             np.ascontiguousarray(h, dtype=np.int64),
-            packed,
+            p.packed(),
             p.t_s,
             p.poses,
             p.end,
@@ -343,7 +340,8 @@ class FitEstimator(MotionEstimator):
         friction) is screened, all slow pushes rolled out at the `rollout_screen_points`
         likeliest CoMs; the best (`rollout_screen_log`, at most `rollout_hypotheses`) are
         rolled out at the grid's CoMs that hold `rollout_mass` of the posterior (the rest keep
-        none) and marginalised under their prior."""
+        none) and marginalised under their prior. As for the intervals, a push can make no
+        pair less likely than its best by more than `push_max_log`."""
         from scipy.special import logsumexp
 
         fs = self.fit
@@ -363,11 +361,11 @@ class FitEstimator(MotionEstimator):
         order = np.argsort(mass)[::-1]
         held = np.searchsorted(np.cumsum(mass[order]), fs.rollout_mass * mass.sum()) + 1
         live = np.sort(order[:held])  # the grid points that hold the posterior
-        ll = np.empty((len(kept), len(live)))
-        for i, j in enumerate(kept):
-            h = np.full(len(live), j)
-            loss = sum(self._losses(k, live, h) for k in range(len(self._rollouts)))
-            ll[i] = log_prior[j] - 0.5 * loss
+        g, h = np.tile(live, len(kept)), np.repeat(kept, len(live))
+        ll = log_prior[kept][:, None].repeat(len(live), axis=1)
+        for k in range(len(self._rollouts)):
+            push_ll = -0.5 * self._losses(k, g, h).reshape(len(kept), len(live))
+            ll += np.maximum(push_ll, push_ll.max() - fs.push_max_log)
         term = np.full(n, -np.inf)
         term[live] = logsumexp(ll, axis=0)
         lw = np.log(self.weights + 1e-300) + term[self.to_coarse]

@@ -374,6 +374,19 @@ class RolloutPush:
     poses: np.ndarray  # (nf, 3)
     end: np.ndarray  # (3,)
 
+    def packed(self) -> np.ndarray:
+        """The compiled rollout's `push` argument."""
+        return np.array(
+            [
+                *self.pose0,
+                *self.start_m,
+                *self.direction,
+                self.speed_m_s,
+                self.duration_s,
+                self.radius_m,
+            ]
+        )
+
 
 def rollout_push(drive: PusherDrive, end: Pose2D, offset_m: float = 0.0) -> RolloutPush | None:
     """`drive` as the rollout replays it, its disc `offset_m` larger and touching that much
@@ -496,9 +509,10 @@ def _closest_near(qx, qy, outline, last, radius):
 def _rollout(outline, table_row, gx, gy, ratio, axis_w, mu, push, step_m, t_s, out):
     """Drives the model through one push for one hypothesis; writes the poses at `t_s` (after
     the touch; sorted) to out[:-1] and the final pose to out[-1]. push = (x0, y0, yaw0, sx,
-    sy, dx, dy, speed, duration, radius). The pusher advances `step_m` per step; while its
-    disc overlaps the outline the object moves with the model's twist for the pusher's
-    velocity plus the overlap taken back within the step (so that no drift accumulates)."""
+    sy, dx, dy, speed, duration, radius). The pusher advances `step_m` per step; where its
+    disc at the step's end overlaps the outline the object moves with the model's twist for
+    the pusher's velocity, its normal part the one that clears the overlap within the step
+    (so that no drift accumulates)."""
     x, y, th, sx, sy, dx, dy, speed, duration, radius = push
     n_angles = table_row.shape[0] - 1
     nsteps = max(1, int(math.ceil(duration * speed / step_m)))
@@ -506,10 +520,10 @@ def _rollout(outline, table_row, gx, gy, ratio, axis_w, mu, push, step_m, t_s, o
     fi = 0
     edge = -1
     for k in range(nsteps):
-        while fi < t_s.shape[0] and t_s[fi] <= k * h:
+        while fi < t_s.shape[0] and t_s[fi] < (k + 0.5) * h:  # the nearest step boundary
             out[fi, 0], out[fi, 1], out[fi, 2] = x, y, th
             fi += 1
-        t = (k + 0.5) * h
+        t = (k + 1) * h  # where the pusher is at the step's end: the object must be clear
         c, s = math.cos(th), math.sin(th)
         wx, wy = sx + dx * speed * t - x, sy + dy * speed * t - y
         qx, qy = c * wx + s * wy, -s * wx + c * wy
@@ -521,9 +535,9 @@ def _rollout(outline, table_row, gx, gy, ratio, axis_w, mu, push, step_m, t_s, o
         vy = (-s * dx + c * dy) * speed
         if vx * nx + vy * ny <= 0:
             continue
-        overlap = (radius - dist) / h
-        vx += nx * overlap
-        vy += ny * overlap
+        push_in = (radius - dist) / h - (vx * nx + vy * ny)  # the overlap left after the step
+        vx += nx * push_in
+        vy += ny * push_in
         axis = axis_w - th
         u = (axis / math.pi) % 1.0 * n_angles
         i = min(int(u), n_angles - 1)
@@ -600,3 +614,38 @@ def rollout_losses(
                 acc += _pose_term(poses[f], observed[f], pose0, sd, st, rel)
             loss += path_weight * acc / nf
         out[i] = loss
+
+
+def roll_out(
+    push: RolloutPush,
+    outline_m: np.ndarray,
+    samples: np.ndarray,
+    G: np.ndarray,
+    ratio: float,
+    axis_rad: float,
+    mu_p: float,
+    step_m: float = 0.001,
+) -> np.ndarray:
+    """The model's poses (x, y, yaw; world) through `push` for a CoM G (object frame) on the
+    floor (`ratio` across the low-friction axis at world angle `axis_rad`) with pusher
+    friction `mu_p`: one row per tracked time `push.t_s`, then the pose at the push's end."""
+    G = np.atleast_2d(np.asarray(G, dtype=float))
+    outline = np.ascontiguousarray(outline_m, dtype=float)
+    table = moment_table(
+        samples, pressure_weights(samples, G), G, np.array([float(ratio)]), MOMENT_ANGLES
+    )
+    out = np.empty((len(push.t_s) + 1, 3))
+    _rollout(
+        outline,
+        table[0, 0],
+        G[0, 0],
+        G[0, 1],
+        ratio,
+        axis_rad,
+        mu_p,
+        push.packed(),
+        step_m,
+        push.t_s,
+        out,
+    )
+    return out
