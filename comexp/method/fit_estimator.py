@@ -19,7 +19,13 @@ larger and its contact that much earlier (`quasi_static.PusherDrive`).
 
 The quasi-static likelihood is computed on a grid `grid_px` pixels apart and carried to
 `motion`'s finer grid by nearest point. After a slow push on a floor that looks anisotropic the
-next push is chosen for information (`FitEstimator.next_push`). Frames and units as
+next push is chosen for information (`FitEstimator.next_push`).
+
+The estimate reads the slow pushes a second way (`FitSettings.rollout`): each push rolled out
+whole through the same model from its start pose (`quasi_static.rollout_losses`), its rest pose
+against the one seen. An interval's bias stays in every interval; the rollout weighs what the
+push did as a whole. It refines the estimate only (`estimate_m`): the pushes are chosen, and
+the regions stored, by the intervals' posterior, for which the choice was built. Frames and units as
 `ComEstimator`'s; docs/method.md, "Beyond the paper: `estimator.method=fit`", has the model, its
 assumptions and where it fails.
 """

@@ -21,6 +21,12 @@ f = M^-1 v_p lies in its cone, else slides with f on the cone's edge and the con
 velocity matched. `tests/quasi_static_reference.py` solves the same push without the ellipsoid
 (docs/method.md, "What the ellipsoid leaves out").
 
+The same model integrated along a whole push (`rollout_losses`, `roll_out`): the pusher's disc
+driven along its path in steps, the object moved at each step with the twist for the contact
+where the disc meets the outline; the moment c tabulated over the floor's axis per candidate
+(`moment_table`), the contact searched first near the last one. `FitEstimator` reads a push's
+rest pose this way too.
+
 Frames: the estimator's (metres, y up, CCW positive; docs/method.md), floor angles in the world.
 """
 
