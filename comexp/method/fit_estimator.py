@@ -66,8 +66,9 @@ from comexp.method.quasi_static import (
 # The model's revision (with motion's, whose posterior it multiplies): pinned in fit episodes'
 # keys like motion's (`EstimatorSettings.motion_version`). fit-2: the contact's offset measured;
 # fit-3: the floor's pressure centred under the candidate CoM (its clipping had pulled it inward);
-# fit-4: the estimate refined by the rollout reading.
-FIT_VERSION = f"fit-4+{MOTION_VERSION}"
+# fit-4: the estimate refined by the rollout reading; fit-5: only where the floor looks
+# anisotropic.
+FIT_VERSION = f"fit-5+{MOTION_VERSION}"
 
 
 @dataclass(frozen=True)
@@ -235,8 +236,10 @@ class FitEstimator(MotionEstimator):
 
     @property
     def estimate_m(self) -> np.ndarray:
-        """The posterior's mean, refined by the rollout reading once slow pushes were seen."""
-        if not self._rollouts:
+        """The posterior's mean, refined by the rollout reading once slow pushes were seen on a
+        floor they make look anisotropic (on an isotropic one the intervals read the pushes as
+        well: measured, whole jobs, docs/method.md)."""
+        if not (self._rollouts and self._floor_looks_anisotropic()):
             return self.weights @ self.points
         if self._rolled is None or self._rolled[0] != len(self._rollouts):
             self._rolled = (len(self._rollouts), self._rollout_weights() @ self.points)
@@ -406,11 +409,10 @@ class FitEstimator(MotionEstimator):
         fs = self.fit
         top = np.argsort(self.weights)[::-1][: fs.info_points]
         G, w = self.points[top], self.weights[top] / self.weights[top].sum()
-        ev = self._floor_evidence()
-        post = np.exp(ev - ev.max())
-        aniso = self.ratios != 1.0
-        if post[aniso].sum() <= post[~aniso].sum():
+        if not self._floor_looks_anisotropic():
             return None  # isotropic as likely: Algorithm 1's splits inform more (measured)
+        ev = self._floor_evidence()
+        aniso = self.ratios != 1.0
         j = int(np.flatnonzero(aniso)[np.argmax(ev[aniso])])
         m, k = np.unravel_index(int(np.argmax(self.loglik[:, j].max(0))), self.loglik.shape[2:])
         pressure = pressure_weights(self.samples, G)
@@ -441,6 +443,14 @@ class FitEstimator(MotionEstimator):
             self.loglik[:, idx].transpose(1, 0, 2, 3).reshape(len(idx), n, -1), axis=(1, 2)
         )
         return ev
+
+    def _floor_looks_anisotropic(self) -> bool:
+        """Whether the intervals so far make an anisotropic floor likelier than an isotropic
+        one (the push choice's gate and the rollout's)."""
+        ev = self._floor_evidence()
+        post = np.exp(ev - ev.max())
+        aniso = self.ratios != 1.0
+        return bool(post[aniso].sum() > post[~aniso].sum())
 
     def _prune(self) -> None:
         """Stop evaluating floors whose evidence is `prune_log` below the best one's."""
