@@ -12,6 +12,7 @@ from shapely.geometry import MultiPoint, Polygon
 from comexp.method.geometry import (
     centroid,
     convex_decomposition,
+    douglas_peucker,
     is_convex,
     min_width,
     second_moments,
@@ -218,3 +219,32 @@ def test_pose_maps_points_ccw_and_back_and_reads_only_x_and_y():
     wide = np.concatenate([pts, np.ones((4, 5, 1))], axis=-1)
     assert np.array_equal(pose.to_world(wide), pose.to_world(pts))
     assert np.array_equal(pose.to_object(wide), pose.to_object(pts))
+
+
+def _staircase(poly: list[tuple[float, float]], step: float) -> np.ndarray:
+    """The polygon traced as a pixel outline would be: every edge cut into `step`-long pieces."""
+    pts = []
+    for a, b in zip(poly, poly[1:] + poly[:1], strict=True):
+        n = max(1, round(math.dist(a, b) / step))
+        pts += [tuple(np.add(a, np.subtract(b, a) * k / n)) for k in range(n)]
+    return np.array(pts)
+
+
+@pytest.mark.parametrize("name", ["L", "T", "U", "cross"])
+def test_douglas_peucker_keeps_a_traced_polygons_corners(name):
+    """A polygon cut into 0.1-long pieces comes back as its own corners."""
+    poly = NONCONVEX[name]
+    out = douglas_peucker(_staircase(poly, 0.1), 1e-6)
+    assert sorted(map(tuple, np.round(out, 9))) == sorted(map(tuple, np.array(poly, float)))
+
+
+@pytest.mark.parametrize("tol", [1e-4, 3e-4, 1e-3])
+def test_douglas_peucker_stays_within_its_tolerance(tol):
+    """A 5 cm circle of 400 vertices: far fewer kept, every dropped one within `tol` of the
+    simplified outline."""
+    t = np.linspace(0.0, 2 * math.pi, 400, endpoint=False)
+    circle = 0.05 * np.c_[np.cos(t), np.sin(t)]
+    out = douglas_peucker(circle, tol)
+    assert 8 <= len(out) < len(circle) / 4
+    boundary = Polygon(out).exterior
+    assert max(boundary.distance(shapely.Point(p)) for p in circle) <= tol * (1 + 1e-9)

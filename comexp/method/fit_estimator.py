@@ -21,11 +21,12 @@ The quasi-static likelihood is computed on a grid `grid_px` pixels apart and car
 `motion`'s finer grid by nearest point. After a slow push on a floor that looks anisotropic the
 next push is chosen for information (`FitEstimator.next_push`).
 
-The estimate reads the slow pushes a second way (`FitSettings.rollout`): each push rolled out
-whole through the same model from its start pose (`quasi_static.rollout_losses`), its rest pose
-against the one seen. An interval's bias stays in every interval; the rollout weighs what the
-push did as a whole. It refines the estimate only (`estimate_m`): the pushes are chosen, and
-the regions stored, by the intervals' posterior, for which the choice was built. Frames and units as
+On a floor the intervals make look anisotropic, the estimate reads the slow pushes a second
+way (`FitSettings.rollout`): each push rolled out whole through the same model from its start
+pose (`quasi_static.rollout_losses`), its rest pose against the one seen. An interval's bias
+stays in every interval; the rollout weighs what the push did as a whole. It refines the
+estimate only (`estimate_m`): the pushes are chosen, and the regions stored, by the intervals'
+posterior, for which the choice was built. Frames and units as
 `ComEstimator`'s; docs/method.md, "Beyond the paper: `estimator.method=fit`", has the model, its
 assumptions and where it fails.
 """
@@ -100,20 +101,21 @@ class FitSettings:
     # across the posterior's `info_points` likeliest CoMs (the best nuisance hypothesis)
     choose_for_information: bool = True
     info_points: int = 48
-    # the rollout reading: every slow push replayed through the same model from its start pose
-    # (`quasi_static.rollout_losses`), its rest pose (and, weighted `rollout_path_weight`, its
-    # tracked poses) against what was seen; False: the intervals alone
+    # the rollout reading of the estimate (on a floor that looks anisotropic): every slow push
+    # replayed through the same model from its start pose (`quasi_static.rollout_losses`), its
+    # rest pose (and, weighted `rollout_path_weight`, its tracked poses) against what was seen;
+    # False: the intervals alone
     rollout: bool = True
     rollout_rel_model: float = 0.2  # the rollout's error relative to the motion it predicts
     rollout_path_weight: float = 0.0
     rollout_step_m: float = 0.001  # the pusher's travel per integration step
-    # the nuisance hypotheses it marginalises: each push screens every one at the
+    # the nuisance hypotheses it marginalises: every one is rolled out at the posterior's
     # `rollout_screen_points` likeliest CoMs; those within `rollout_screen_log` of the best
-    # (at most `rollout_hypotheses`) are rolled out at every CoM of the model's grid
+    # (at most `rollout_hypotheses`) at the model grid's CoMs that hold `rollout_mass` of it
     rollout_screen_points: int = 3
     rollout_screen_log: float = 10.0
     rollout_hypotheses: int = 6
-    rollout_mass: float = 0.999  # ... at the grid points holding this much of the posterior
+    rollout_mass: float = 0.999
     rollout_outline_tol_m: float = 0.0001  # the outline it rolls against, simplified this far
 
 
@@ -205,8 +207,9 @@ class FitEstimator(MotionEstimator):
         rotation_deg: float,
         line_direction: np.ndarray | None = None,
     ) -> str:
-        """`motion`'s update, then a slow push's quasi-static intervals and its rollout; the
-        posterior is `motion`'s times both readings' evidence over every slow push so far."""
+        """`motion`'s update, then a slow push's quasi-static intervals (kept, too, for the
+        rollout reading of `estimate_m`); the posterior is `motion`'s times the intervals'
+        evidence over every slow push so far."""
         path = self._path
         label = super().observe(contact_m, direction, rotation_deg, line_direction)
         fs = self.fit
@@ -223,13 +226,11 @@ class FitEstimator(MotionEstimator):
         if self.steps_used:
             from scipy.special import logsumexp
 
-            ll = np.log(self.weights + 1e-300)
-            if self.steps_used:
-                self._prune()
-                n = len(self.coarse)
-                prior = self.log_prior[None, self.active, None, None]
-                qs = logsumexp((self.loglik[:, self.active] + prior).reshape(n, -1), axis=1)
-                ll += fs.weight * qs[self.to_coarse]
+            self._prune()
+            n = len(self.coarse)
+            prior = self.log_prior[None, self.active, None, None]
+            qs = logsumexp((self.loglik[:, self.active] + prior).reshape(n, -1), axis=1)
+            ll = np.log(self.weights + 1e-300) + fs.weight * qs[self.to_coarse]
             p = np.exp(ll - ll.max())
             self.weights = p / p.sum()
         return f"{label}-qs" if steps and len(label) <= 13 else label
