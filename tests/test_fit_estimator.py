@@ -15,10 +15,12 @@ from comexp.method.fit_estimator import FIT_VERSION, FitEstimator, FitSettings
 from comexp.method.frames import Pose2D
 from comexp.method.motion_estimator import KnownNuisances, PushPath
 from comexp.method.quasi_static import (
+    MOMENT_ANGLES,
     ContactStep,
     PusherDrive,
     RolloutPush,
     footprint_samples,
+    moment_table,
     predict_step,
     pressure_weights,
     roll_out,
@@ -636,3 +638,14 @@ def test_the_rollout_refines_the_estimate_on_the_models_own_paths(ratio, axis) -
     assert with_rollout.rollouts_run <= screening + 3 * fs.rollout_hypotheses * len(
         with_rollout.coarse
     )
+
+
+def test_the_moment_table_is_built_only_where_the_rollout_runs() -> None:
+    """`_tabulate` fills the rows the rollouts used, each what the whole table would hold."""
+    est, _ = _estimate_on_model_paths(10.0, math.pi / 2, FitSettings())
+    rows = np.flatnonzero(est._tabulated)
+    assert 0 < len(rows) < len(est.coarse) / 2  # measured: 13 of 228
+    whole = moment_table(
+        est.samples, est.pressure, est.coarse, np.unique(est.ratios), MOMENT_ANGLES
+    )
+    assert est._table[rows] == pytest.approx(whole[rows], rel=0, abs=0)

@@ -192,7 +192,8 @@ class FitEstimator(MotionEstimator):
         # the rollout reading's state: the slow pushes, the estimate it gives (per push count)
         self._rollouts: list[RolloutPush] = []
         self._rolled: tuple[int, np.ndarray] | None = None
-        self._table: np.ndarray | None = None
+        self._table: np.ndarray | None = None  # `_tabulate`'s
+        self._tabulated = np.zeros(0, dtype=np.bool_)
         self._roll_outline = (
             None
             if self.outline is None
@@ -307,12 +308,23 @@ class FitEstimator(MotionEstimator):
         index = np.searchsorted(np.unique(self.ratios), ratios)
         return ratios, axes, mus, index
 
+    def _tabulate(self, g: np.ndarray) -> None:
+        """The limit surface's moment table (`quasi_static.moment_table`) for the grid points g,
+        those not yet tabulated: a rollout needs it only where it runs."""
+        ratios = np.unique(self.ratios)
+        if self._table is None:
+            self._table = np.zeros((len(self.coarse), len(ratios), MOMENT_ANGLES + 1))
+            self._tabulated = np.zeros(len(self.coarse), dtype=np.bool_)
+        new = g[~self._tabulated[g]]
+        if len(new):
+            self._table[new] = moment_table(
+                self.samples, self.pressure[new], self.coarse[new], ratios, MOMENT_ANGLES
+            )
+            self._tabulated[new] = True
+
     def _losses(self, k: int, g: np.ndarray, h: np.ndarray) -> np.ndarray:
         """Push k's rollout losses for the (candidate, hypothesis) pairs (g[i], h[i])."""
-        if self._table is None:
-            self._table = moment_table(
-                self.samples, self.pressure, self.coarse, np.unique(self.ratios), MOMENT_ANGLES
-            )
+        self._tabulate(np.unique(g))
         ratios, axes, mus, index = self._hypotheses()
         p, fs, ms = self._rollouts[k], self.fit, self.motion
         noise = np.array(
