@@ -68,8 +68,9 @@ from comexp.method.quasi_static import (
 # keys like motion's (`EstimatorSettings.motion_version`). fit-2: the contact's offset measured;
 # fit-3: the floor's pressure centred under the candidate CoM (its clipping had pulled it inward);
 # fit-4: the estimate refined by the rollout reading; fit-5: only where the floor looks
-# anisotropic.
-FIT_VERSION = f"fit-5+{MOTION_VERSION}"
+# anisotropic; fit-6: the rollout's contact search proven the full one's (fit-5's local search
+# could miss a closer part of a concave outline).
+FIT_VERSION = f"fit-6+{MOTION_VERSION}"
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,8 @@ velocity matched. `tests/quasi_static_reference.py` solves the same push without
 The same model integrated along a whole push (`rollout_losses`, `roll_out`): the pusher's disc
 driven along its path in steps, the object moved at each step with the twist for the contact
 where the disc meets the outline; the moment c tabulated over the floor's axis per candidate
-(`moment_table`), the contact searched first near the last one. `FitEstimator` reads a push's
+(`moment_table`), the contact searched near the last full search's while that provably
+suffices. `FitEstimator` reads a push's
 rest pose this way too.
 
 Frames: the estimator's (metres, y up, CCW positive; docs/method.md), floor angles in the world.
@@ -470,7 +471,8 @@ def _closest_edge_point(qx, qy, outline):
     return bx, by, best, inside
 
 
-NEAR_EDGES = 4  # the edges either side of the last contact's searched first
+NEAR_EDGES = 4  # the edges either side of the anchor's closest one searched first (4 of 5,
+# 8 and 16: the cheapest, bench/episode_profile.py)
 
 
 @njit(cache=True)
@@ -487,28 +489,46 @@ def _edge_point(qx, qy, outline, i):
 
 
 @njit(cache=True)
-def _closest_near(qx, qy, outline, last, radius):
-    """`_closest_edge_point` searched first among the edges next to `last` (the pusher moves
-    little between steps): (x, y, distance, inside, edge). The whole outline is searched when
-    the best is at the window's end, or the disc's centre came within half its radius (where
-    inside matters)."""
+def _closest_near(qx, qy, outline, anchor, scratch):
+    """`_closest_edge_point`, searching only the edges near the last full search's closest
+    one while that is provably enough: anchor = (x, y, edge, d_out, d) of the last full search
+    at (x, y), which found the outline d away (outside it) and the nearest edge outside the
+    window d_out away. An edge outside the window is then at least d_out - |q - anchor| from
+    q; while the window's best is no farther, it is the outline's, and while q is less than d
+    from the anchor it is still outside. Else (or with edge < 0: the anchor was inside) a full
+    search re-anchors (its distances kept in `scratch`, at least as long as the outline).
+    Returns (x, y, distance, inside); `anchor` is updated in place."""
     n = outline.shape[0]
-    if last >= 0 and n > 2 * NEAR_EDGES + 1:
-        best, bx, by, bi = 1e30, 0.0, 0.0, -1
+    e0 = int(anchor[2])
+    if e0 >= 0:
+        best, bx, by = 1e30, 0.0, 0.0
         for o in range(-NEAR_EDGES, NEAR_EDGES + 1):
-            i = (last + o) % n
-            px, py, d = _edge_point(qx, qy, outline, i)
+            px, py, d = _edge_point(qx, qy, outline, (e0 + o) % n)
             if d < best:
-                best, bx, by, bi = d, px, py, o
-        if abs(bi) < NEAR_EDGES and best > 0.5 * radius:
-            return bx, by, best, False, (last + bi) % n
+                best, bx, by = d, px, py
+        moved = math.hypot(qx - anchor[0], qy - anchor[1])
+        if best <= anchor[3] - moved and moved < anchor[4]:
+            return bx, by, best, False
     best, bx, by, bi = 1e30, 0.0, 0.0, 0
+    dist = scratch[:n]
     for i in range(n):
         px, py, d = _edge_point(qx, qy, outline, i)
+        dist[i] = d
         if d < best:
             best, bx, by, bi = d, px, py, i
-    _, _, _, inside = _closest_edge_point(qx, qy, outline)
-    return bx, by, best, inside, bi
+    inside = False
+    for i in range(n):
+        ay, cy = outline[i, 1], outline[(i + 1) % n, 1]
+        if (ay > qy) != (cy > qy):
+            ax, cx = outline[i, 0], outline[(i + 1) % n, 0]
+            if qx < ax + (qy - ay) * (cx - ax) / (cy - ay):
+                inside = not inside
+    d_out = 1e30
+    for o in range(NEAR_EDGES + 1, n - NEAR_EDGES):
+        d_out = min(d_out, dist[(bi + o) % n])
+    anchor[0], anchor[1], anchor[3], anchor[4] = qx, qy, d_out, best
+    anchor[2] = -1.0 if inside else float(bi)  # inside: search in full until outside again
+    return bx, by, best, inside
 
 
 @njit(cache=True)
@@ -524,7 +544,8 @@ def _rollout(outline, table_row, gx, gy, ratio, axis_w, mu, push, step_m, t_s, o
     nsteps = max(1, int(math.ceil(duration * speed / step_m)))
     h = duration / nsteps
     fi = 0
-    edge = -1
+    anchor = np.array([0.0, 0.0, -1.0, 0.0, 0.0])  # `_closest_near`'s
+    scratch = np.empty(outline.shape[0])
     for k in range(nsteps):
         while fi < t_s.shape[0] and t_s[fi] < (k + 0.5) * h:  # the nearest step boundary
             out[fi, 0], out[fi, 1], out[fi, 2] = x, y, th
@@ -533,7 +554,7 @@ def _rollout(outline, table_row, gx, gy, ratio, axis_w, mu, push, step_m, t_s, o
         c, s = math.cos(th), math.sin(th)
         wx, wy = sx + dx * speed * t - x, sy + dy * speed * t - y
         qx, qy = c * wx + s * wy, -s * wx + c * wy
-        px, py, dist, inside, edge = _closest_near(qx, qy, outline, edge, radius)
+        px, py, dist, inside = _closest_near(qx, qy, outline, anchor, scratch)
         if inside or dist < 1e-9 or dist >= radius:
             continue
         nx, ny = (px - qx) / dist, (py - qy) / dist
