@@ -19,8 +19,8 @@ from comexp.method.quasi_static import (
     ContactStep,
     PusherDrive,
     RolloutPush,
-    _closest_edge_point,
     _closest_near,
+    _closest_on_outline,
     footprint_samples,
     moment_table,
     predict_step,
@@ -674,5 +674,7 @@ def test_the_rollouts_contact_search_is_the_full_search() -> None:
         anchor = np.array([0.0, 0.0, -1.0, 0.0, 0.0])
         for k in range(80):
             q = q0 + d * 0.001 * k
-            near = _closest_near(q[0], q[1], outline, anchor, np.empty(len(outline)))
-            assert near == _closest_edge_point(q[0], q[1], outline)
+            x, y, dist, inside = _closest_near(q[0], q[1], outline, anchor, np.empty(len(outline)))
+            point, full_dist, full_inside = _closest_on_outline(q, outline)
+            assert (x, y) == pytest.approx(tuple(point), abs=1e-12)
+            assert dist == pytest.approx(full_dist, abs=1e-12) and inside == full_inside

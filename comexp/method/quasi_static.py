@@ -449,28 +449,6 @@ def moment_table(samples, weights, G, ratios, n_angles):
     return out
 
 
-@njit(cache=True)
-def _closest_edge_point(qx, qy, outline):
-    """`_closest_on_outline`, compiled: (x, y, distance, inside)."""
-    n = outline.shape[0]
-    best, bx, by = 1e30, 0.0, 0.0
-    inside = False
-    for i in range(n):
-        ax, ay = outline[i, 0], outline[i, 1]
-        j = i + 1 if i + 1 < n else 0
-        cx, cy = outline[j, 0], outline[j, 1]
-        ex, ey = cx - ax, cy - ay
-        t = ((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-30)
-        t = min(1.0, max(0.0, t))
-        px, py = ax + t * ex, ay + t * ey
-        d = math.hypot(px - qx, py - qy)
-        if d < best:
-            best, bx, by = d, px, py
-        if (ay > qy) != (cy > qy) and qx < ax + (qy - ay) * (cx - ax) / (cy - ay):
-            inside = not inside
-    return bx, by, best, inside
-
-
 NEAR_EDGES = 4  # the edges either side of the anchor's closest one searched first (4 of 5,
 # 8 and 16: the cheapest, bench/episode_profile.py)
 
@@ -490,7 +468,7 @@ def _edge_point(qx, qy, outline, i):
 
 @njit(cache=True)
 def _closest_near(qx, qy, outline, anchor, scratch):
-    """`_closest_edge_point`, searching only the edges near the last full search's closest
+    """`_closest_on_outline`, compiled, searching only the edges near the last full search's closest
     one while that is provably enough: anchor = (x, y, edge, d_out, d) of the last full search
     at (x, y), which found the outline d away (outside it) and the nearest edge outside the
     window d_out away. An edge outside the window is then at least d_out - |q - anchor| from
