@@ -176,6 +176,8 @@ class FitEstimator(MotionEstimator):
         self.gains = np.asarray(fs.turn_gains, dtype=float)
         self.loglik = np.zeros((len(self.coarse), len(floors), len(self.mu_p), len(self.gains)))
         self.steps_used = 0
+        self._updates = 0  # of `loglik`: keys `_floor_evidence`'s cache
+        self._evidence: tuple[tuple[int, bytes], np.ndarray] | None = None
         self._slow = False  # the last push was read with the quasi-static model
         self._travel_m = 0.0
         self._gaps: list[float] = []  # the pusher's gaps while driving (`PusherDrive.gaps_m`)
@@ -289,6 +291,7 @@ class FitEstimator(MotionEstimator):
             idx = np.flatnonzero(self.active)
             best = push_ll[:, idx].max()
             self.loglik += np.maximum(push_ll, best - fs.push_max_log)
+            self._updates += 1
         self.steps_used += len(steps)
         if fs.rollout:
             end = path.poses[-1] if path.extra.get("recentred") and path.poses else path.pose_after
@@ -447,16 +450,20 @@ class FitEstimator(MotionEstimator):
         return out
 
     def _floor_evidence(self) -> np.ndarray:
-        """Each floor's log evidence (its prior included; -inf once pruned)."""
+        """Each floor's log evidence (its prior included; -inf once pruned); kept until `loglik`
+        or the active floors change (a push asks for it several times)."""
         from scipy.special import logsumexp
 
-        n = len(self.coarse)
-        ev = np.full(len(self.active), -np.inf)
-        idx = np.flatnonzero(self.active)
-        ev[idx] = self.log_prior[idx] + logsumexp(
-            self.loglik[:, idx].transpose(1, 0, 2, 3).reshape(len(idx), n, -1), axis=(1, 2)
-        )
-        return ev
+        key = (self._updates, self.active.tobytes())
+        if self._evidence is None or self._evidence[0] != key:
+            n = len(self.coarse)
+            ev = np.full(len(self.active), -np.inf)
+            idx = np.flatnonzero(self.active)
+            ev[idx] = self.log_prior[idx] + logsumexp(
+                self.loglik[:, idx].transpose(1, 0, 2, 3).reshape(len(idx), n, -1), axis=(1, 2)
+            )
+            self._evidence = (key, ev)
+        return self._evidence[1].copy()
 
     def _floor_looks_anisotropic(self) -> bool:
         """Whether the intervals so far make an anisotropic floor likelier than an isotropic

@@ -62,20 +62,55 @@ class ContactStep:
 
 def _closest_on_outline(q: np.ndarray, outline: np.ndarray) -> tuple[np.ndarray, float, bool]:
     """The outline's point closest to q, its distance, and whether q is inside the outline."""
-    a = outline
-    b = np.roll(outline, -1, axis=0)
-    ab = b - a
-    t = np.clip(((q - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-30), 0.0, 1.0)
-    pts = a + t[:, None] * ab
-    d = np.hypot(*(pts - q).T)
-    i = int(np.argmin(d))
-    # even-odd rule for inside
-    ya, yb = a[:, 1], b[:, 1]
-    cross = (ya > q[1]) != (yb > q[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = a[:, 0] + (q[1] - ya) * (b[:, 0] - a[:, 0]) / (yb - ya)
-    inside = bool(np.count_nonzero(cross & (q[0] < x_at)) % 2)
-    return pts[i], float(d[i]), inside
+    x, y, dist, _, inside = _closest_full(q[0], q[1], outline, np.empty(len(outline)))
+    return np.array([x, y]), dist, inside
+
+
+@njit(cache=True)
+def _edge_point(qx, qy, outline, i):
+    """The point of edge i (vertex i to i + 1) closest to q, and its distance."""
+    n = outline.shape[0]
+    j = i + 1 if i + 1 < n else 0
+    ax, ay = outline[i, 0], outline[i, 1]
+    ex, ey = outline[j, 0] - ax, outline[j, 1] - ay
+    t = ((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-30)
+    t = min(1.0, max(0.0, t))
+    px, py = ax + t * ex, ay + t * ey
+    return px, py, math.hypot(px - qx, py - qy)
+
+
+@njit(cache=True)
+def _inside(qx, qy, outline):
+    """Whether (qx, qy) is inside the outline (even-odd rule, a ray to +x)."""
+    n = outline.shape[0]
+    inside = False
+    for i in range(n):
+        ay, cy = outline[i, 1], outline[(i + 1) % n, 1]
+        if (ay > qy) != (cy > qy):
+            ax, cx = outline[i, 0], outline[(i + 1) % n, 0]
+            if qx < ax + (qy - ay) * (cx - ax) / (cy - ay):
+                inside = not inside
+    return inside
+
+
+@njit(cache=True)
+def _inside_all(points, outline, out):
+    """`_inside` for every point (out: bool, one per point)."""
+    for k in range(points.shape[0]):
+        out[k] = _inside(points[k, 0], points[k, 1], outline)
+
+
+@njit(cache=True)
+def _closest_full(qx, qy, outline, dist):
+    """The outline's point closest to q over every edge: (x, y, distance, edge, inside); each
+    edge's distance is left in `dist` (at least as long as the outline)."""
+    best, bx, by, bi = 1e30, 0.0, 0.0, 0
+    for i in range(outline.shape[0]):
+        px, py, d = _edge_point(qx, qy, outline, i)
+        dist[i] = d
+        if d < best:
+            best, bx, by, bi = d, px, py, i
+    return bx, by, best, bi, _inside(qx, qy, outline)
 
 
 def _between(a: Pose2D, b: Pose2D) -> Pose2D:
@@ -187,7 +222,8 @@ def footprint_samples(outline_m: np.ndarray, n: int = 64) -> np.ndarray:
         xs = np.arange(lo[0] + h / 2, hi[0], h)
         ys = np.arange(lo[1] + h / 2, hi[1], h)
         grid = np.array([(x, y) for y in ys for x in xs])
-        keep = np.array([_closest_on_outline(g, outline)[2] for g in grid])
+        keep = np.zeros(len(grid), dtype=np.bool_)
+        _inside_all(grid, outline, keep)
         pts = grid[keep]
         if len(pts) >= n // 2 or h < 1e-4:
             return pts
@@ -239,19 +275,28 @@ def _twist(bxx, byy, bxy, ic2, rx, ry, mu, nx, ny, vx, vy):
 
 
 @njit(cache=True)
+def _floor_b(ratio, axis_rad):
+    """The floor's B_f = R diag(1, 1 / ratio^2) R^T (object frame): (b_xx, b_yy, b_xy)."""
+    ca, sa = math.cos(axis_rad), math.sin(axis_rad)
+    inv2 = 1.0 / (ratio * ratio)
+    return ca * ca + inv2 * sa * sa, sa * sa + inv2 * ca * ca, ca * sa * (1.0 - inv2)
+
+
+@njit(cache=True)
+def _predict_b(c, gx, gy, bxx, byy, bxy, mu, px, py, nx, ny, vx, vy):
+    """`_predict` for a floor given by its `_floor_b`."""
+    fx, fy, wx, wy, om = _twist(bxx, byy, bxy, 1.0 / (c * c), px - gx, py - gy, mu, nx, ny, vx, vy)
+    # the twist is about G: the origin moves with v_G + omega z x (O - G)
+    return wx + om * gy, wy - om * gx, om
+
+
+@njit(cache=True)
 def _predict(c, gx, gy, ratio, axis_rad, mu, px, py, nx, ny, vx, vy):
     """Origin displacement rate and turn rate (per second of driving) for one hypothesis: CoM
     (gx, gy) with limit-surface moment c, floor (ratio, axis_rad: object frame), pusher
     friction mu."""
-    ca, sa = math.cos(axis_rad), math.sin(axis_rad)
-    inv2 = 1.0 / (ratio * ratio)  # B_f = R diag(1, 1 / ratio^2) R^T
-    bxx = ca * ca + inv2 * sa * sa
-    byy = sa * sa + inv2 * ca * ca
-    bxy = ca * sa * (1.0 - inv2)
-    ic2 = 1.0 / (c * c)
-    fx, fy, wx, wy, om = _twist(bxx, byy, bxy, ic2, px - gx, py - gy, mu, nx, ny, vx, vy)
-    # the twist is about G: the origin moves with v_G + omega z x (O - G)
-    return wx + om * gy, wy - om * gx, om
+    bxx, byy, bxy = _floor_b(ratio, axis_rad)
+    return _predict_b(c, gx, gy, bxx, byy, bxy, mu, px, py, nx, ny, vx, vy)
 
 
 @njit(cache=True)
@@ -269,20 +314,10 @@ def add_step_loglik(G, samples, weights, ratios, axes, mus, gains, active, step,
             c = _moment(
                 samples, weights[g], G[g, 0], G[g, 1], ratios[j], math.cos(axis), math.sin(axis)
             )
+            bxx, byy, bxy = _floor_b(ratios[j], axis)  # once for every pusher friction
             for m in range(mus.shape[0]):
-                ux, uy, om = _predict(
-                    c,
-                    G[g, 0],
-                    G[g, 1],
-                    ratios[j],
-                    axis,
-                    mus[m],
-                    px,
-                    py,
-                    nx,
-                    ny,
-                    vx,
-                    vy,
+                ux, uy, om = _predict_b(
+                    c, G[g, 0], G[g, 1], bxx, byy, bxy, mus[m], px, py, nx, ny, vx, vy
                 )
                 for k in range(gains.shape[0]):
                     # the turn's gain: an object slow to spin up (large Izz on a slippery
@@ -454,28 +489,15 @@ NEAR_EDGES = 4  # the edges either side of the anchor's closest one searched fir
 
 
 @njit(cache=True)
-def _edge_point(qx, qy, outline, i):
-    """The point of edge i (vertex i to i + 1) closest to q, and its distance."""
-    n = outline.shape[0]
-    j = i + 1 if i + 1 < n else 0
-    ax, ay = outline[i, 0], outline[i, 1]
-    ex, ey = outline[j, 0] - ax, outline[j, 1] - ay
-    t = ((qx - ax) * ex + (qy - ay) * ey) / max(ex * ex + ey * ey, 1e-30)
-    t = min(1.0, max(0.0, t))
-    px, py = ax + t * ex, ay + t * ey
-    return px, py, math.hypot(px - qx, py - qy)
-
-
-@njit(cache=True)
 def _closest_near(qx, qy, outline, anchor, scratch):
-    """`_closest_on_outline`, compiled, searching only the edges near the last full search's closest
-    one while that is provably enough: anchor = (x, y, edge, d_out, d) of the last full search
-    at (x, y), which found the outline d away (outside it) and the nearest edge outside the
-    window d_out away. An edge outside the window is then at least d_out - |q - anchor| from
-    q; while the window's best is no farther, it is the outline's, and while q is less than d
-    from the anchor it is still outside. Else (or with edge < 0: the anchor was inside) a full
-    search re-anchors (its distances kept in `scratch`, at least as long as the outline).
-    Returns (x, y, distance, inside); `anchor` is updated in place."""
+    """The full search's answer (`_closest_full`) from only the edges near the last full
+    search's closest one while that is provably enough: anchor = (x, y, edge, d_out, d) of the
+    last full search at (x, y), which found the outline d away (outside it) and the nearest
+    edge outside the window d_out away. An edge outside the window is then at least d_out -
+    |q - anchor| from q; while the window's best is no farther, it is the outline's, and while
+    q is less than d from the anchor it is still outside. Else (or with edge < 0: the anchor
+    was inside) a full search re-anchors (its distances kept in `scratch`, at least as long as
+    the outline). Returns (x, y, distance, inside); `anchor` is updated in place."""
     n = outline.shape[0]
     e0 = int(anchor[2])
     if e0 >= 0:
@@ -487,23 +509,10 @@ def _closest_near(qx, qy, outline, anchor, scratch):
         moved = math.hypot(qx - anchor[0], qy - anchor[1])
         if best <= anchor[3] - moved and moved < anchor[4]:
             return bx, by, best, False
-    best, bx, by, bi = 1e30, 0.0, 0.0, 0
-    dist = scratch[:n]
-    for i in range(n):
-        px, py, d = _edge_point(qx, qy, outline, i)
-        dist[i] = d
-        if d < best:
-            best, bx, by, bi = d, px, py, i
-    inside = False
-    for i in range(n):
-        ay, cy = outline[i, 1], outline[(i + 1) % n, 1]
-        if (ay > qy) != (cy > qy):
-            ax, cx = outline[i, 0], outline[(i + 1) % n, 0]
-            if qx < ax + (qy - ay) * (cx - ax) / (cy - ay):
-                inside = not inside
+    bx, by, best, bi, inside = _closest_full(qx, qy, outline, scratch)
     d_out = 1e30
     for o in range(NEAR_EDGES + 1, n - NEAR_EDGES):
-        d_out = min(d_out, dist[(bi + o) % n])
+        d_out = min(d_out, scratch[(bi + o) % n])
     anchor[0], anchor[1], anchor[3], anchor[4] = qx, qy, d_out, best
     anchor[2] = -1.0 if inside else float(bi)  # inside: search in full until outside again
     return bx, by, best, inside
