@@ -229,6 +229,7 @@ def real(data: str) -> list[Path]:
     from comexp.real.replay import (
         SIGN_MIN_TURN_DEG,
         fit_surface,
+        friction_floor,
         geometry_spread,
         replay_all,
         summarise,
@@ -315,6 +316,20 @@ def real(data: str) -> list[Path]:
     columns = ["geometry off by (mm)", "pushes", "median turn change (% of the turn)",
                "median position change (mm)", "p90 position change (mm)"]  # fmt: skip
     written.append(write_table("real-replay-geometry", columns, rows, command, friction=friction))
+    floor = friction_floor(planar, rec.objects, rec.pushes)
+    rows = []
+    for label, replays in (
+        (f"one pair for the surface (fitted: {friction})", replayed["planar", "recorded"]),
+        ("each push's own pair: its closest final position", floor.position),
+        ("each push's own pair: its closest turn", floor.turn),
+    ):
+        s = summarise(replays)
+        rows.append([label, f"{s.sign_right} of {s.turning}", s.turn_error_median_pct,
+                     s.position_error_median_mm, s.position_error_p90_mm])  # fmt: skip
+    columns = ["friction (planar, recorded path)", "turn sign right (> 2 deg)",
+               "median turn error (% of the turn)", "median position error (mm)",
+               "p90 position error (mm)"]  # fmt: skip
+    written.append(write_table("real-replay-floor", columns, rows, command, pairs=floor.pairs))
     planar.close()
     forces = [contact_force(p, rec.objects[p.object_name]) for p in rec.pushes]
     readings = friction_by_speed([f for f in forces if f is not None])

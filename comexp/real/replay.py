@@ -18,7 +18,9 @@ clear (`start_shift_mm` says by how much), at most `MAX_START_SHIFT_M`.
 The friction of a surface is given (`Surface`), or fitted once for the surface on all its
 pushes (`fit_surface`: planar, the reference model, over a grid of floor and pusher
 friction), never per push. `summarise` puts the replay beside a do-nothing prediction (the
-object stays where it was), so a reader sees what the model adds.
+object stays where it was), so a reader sees what the model adds. `friction_floor` bounds
+what any uniform floor can do: each push with the friction pair that replays it best, a
+figure no choice of friction for the whole surface can beat.
 """
 
 from __future__ import annotations
@@ -51,6 +53,9 @@ PATHS = ("recorded", "ideal")
 # `fit_surface`'s grid: the floor's and the pusher's friction coefficient
 FIT_MU_FLOOR = (0.1, 0.125, 0.15, 0.175, 0.2, 0.25, 0.3)
 FIT_MU_PUSHER = (0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
+# `friction_floor`'s grid: `fit_surface`'s, widened either way
+FLOOR_MU_FLOOR = (*FIT_MU_FLOOR, 0.4, 0.5, 0.7)
+FLOOR_MU_PUSHER = (0.05, *FIT_MU_PUSHER, 0.7, 1.0)
 
 
 class ReplayError(ValueError):
@@ -382,6 +387,48 @@ def fit_surface(
                 best = (loss, surface)
     assert best is not None
     return best[1], best[0]
+
+
+@dataclass(frozen=True)
+class FrictionFloor:
+    """Each push replayed with the friction pair of a grid that replays it best: by its final
+    position (`position`) and by its turn (`turn`). One pair for all of a surface's pushes
+    leaves each push's error at least its best here, so `summarise` of either is a floor: the
+    median and 90th percentile of no surface's fitted replay on this model (a uniform floor,
+    the recorded geometry and CoM) can be lower, over the grid's range (`pairs` pairs)."""
+
+    position: tuple[ReplayedPush, ...]
+    turn: tuple[ReplayedPush, ...]
+    pairs: int
+
+
+def friction_floor(
+    sim: Simulator,
+    objects: dict[str, RecordedObject],
+    pushes: Sequence[RecordedPush],
+    path: str = "recorded",
+    mu_floor: Sequence[float] = FLOOR_MU_FLOOR,
+    mu_pusher: Sequence[float] = FLOOR_MU_PUSHER,
+    backend: str | None = None,
+) -> FrictionFloor:
+    """`FrictionFloor` of `pushes` over the grid `mu_floor` x `mu_pusher` (every push on every
+    pair: the grid's size times a replay; a push no pair replays keeps its failed replay)."""
+    names = {surface_of(p) for p in pushes}
+    grid = []
+    for mf in mu_floor:
+        for mp in mu_pusher:
+            surfaces = {n: Surface(n, mf, mp) for n in names}
+            grid.append(replay_all(sim, objects, pushes, surfaces, path, backend))
+
+    def best(i: int, error: Callable[[ReplayedPush], float | None]) -> ReplayedPush:
+        ran = [g[i] for g in grid if error(g[i]) is not None]
+        return min(ran, key=lambda r: abs(error(r) or 0.0)) if ran else grid[0][i]
+
+    return FrictionFloor(
+        tuple(best(i, lambda r: r.position_error_mm) for i in range(len(pushes))),
+        tuple(best(i, lambda r: r.turn_error_deg) for i in range(len(pushes))),
+        len(grid),
+    )
 
 
 @dataclass(frozen=True)
