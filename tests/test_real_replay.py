@@ -232,7 +232,8 @@ def test_replay_of_the_shared_pushes_on_planar(capsys):
 @pytest.mark.xfail(
     reason="measured 19.6% / 2.69 mm / p90 6.88 mm (goals 10% / 2 mm / 4 mm); with each "
     "object's CoM fitted 19.8% / 1.95 / 6.70: the recorded force shows the floor turning the "
-    "disc, which planar's even floor cannot; docs/real_robot.md, 'What the replay shows'",
+    "disc, which planar's even floor cannot; with each push its own friction the p90 stays "
+    "at 5.49 mm; docs/real_robot.md, 'What the replay shows'",
     strict=True,
 )
 def test_replay_goals_on_planar(capsys):
