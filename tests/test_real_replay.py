@@ -65,6 +65,21 @@ def _straight(offset_m: float, angle_rad: float) -> PushCommand:
     return PushCommand((-0.05 - 0.006, offset_m), d, 0.04, 0.05)
 
 
+def _log_pushes(planar, root: Path, surface: Surface) -> list[float]:
+    """PUSHES simulated on planar with the box at COM on `surface`, logged in the plain layout
+    under root; their turns (deg)."""
+    obj = _box()
+    write_plain_object(root / "box", BOX, COM, 0.5, 0.005, 0.03)
+    turns = []
+    for i, (offset, angle) in enumerate(PUSHES):
+        planar.build(object_scene(obj, surface))
+        cols, outcome = record_push(planar, _straight(offset, angle))
+        assert outcome.ok
+        turns.append(outcome.true_rotation_deg)
+        write_plain_push(root / "box" / "pushes" / f"p{i}.csv", cols)
+    return turns
+
+
 def test_a_given_path_drives_the_pusher_as_the_straight_push(planar):
     """`PushCommand.along` with the straight push's own path: the same steps, the same
     outcome, to the bit."""
@@ -93,15 +108,7 @@ def test_round_trip_simulate_log_read_estimate_replay(planar, tmp_path):
     """Pushes simulated on planar, logged in the plain layout, read back, estimated and
     replayed on planar: the replay gives the simulation's turn and final position again
     (rounding only), for the recorded path and the idealised push alike."""
-    obj = _box()
-    write_plain_object(tmp_path / "box", BOX, COM, 0.5, 0.005, 0.03)
-    turns = []
-    for i, (offset, angle) in enumerate(PUSHES):
-        planar.build(object_scene(obj, SURFACE))
-        cols, outcome = record_push(planar, _straight(offset, angle))
-        assert outcome.ok
-        turns.append(outcome.true_rotation_deg)
-        write_plain_push(tmp_path / "box" / "pushes" / f"p{i}.csv", cols)
+    turns = _log_pushes(planar, tmp_path, SURFACE)
     assert min(turns) < -2.0 and max(turns) > 2.0  # both signs: a sign flip would show
 
     rec = read_pushes(tmp_path)
@@ -125,13 +132,7 @@ def test_the_friction_floor_finds_each_push_its_own_friction(planar, tmp_path):
     that pair, `friction_floor` replays every push with it (no error left, by position and by
     turn), and no pair of the grid, the surface's or another, replays a push better than the
     floor says."""
-    obj = _box()
-    write_plain_object(tmp_path / "box", BOX, COM, 0.5, 0.005, 0.03)
-    for i, (offset, angle) in enumerate(PUSHES):
-        planar.build(object_scene(obj, SURFACE))
-        cols, outcome = record_push(planar, _straight(offset, angle))
-        assert outcome.ok
-        write_plain_push(tmp_path / "box" / "pushes" / f"p{i}.csv", cols)
+    _log_pushes(planar, tmp_path, SURFACE)
     rec = read_pushes(tmp_path)
     mu_floor, mu_pusher = (0.15, SURFACE.mu_floor), (SURFACE.mu_pusher, 0.1)
     floor = friction_floor(planar, rec.objects, rec.pushes, mu_floor=mu_floor,
@@ -294,14 +295,7 @@ def test_the_fit_finds_the_com_of_pushes_simulated_with_it(planar, tmp_path):
     """Pushes simulated on planar with an off-centre CoM and a friction pair of the fit's
     grid, logged and read back: `--estimator fit` finds that CoM to within its finest step
     (1.25 mm), where the paper's method from the same pushes is farther off."""
-    obj = _box()
-    surface = Surface("surface", 0.3, 0.25)
-    write_plain_object(tmp_path / "box", BOX, COM, 0.5, 0.005, 0.03)
-    for i, (offset, angle) in enumerate(PUSHES):
-        planar.build(object_scene(obj, surface))
-        cols, outcome = record_push(planar, _straight(offset, angle))
-        assert outcome.ok
-        write_plain_push(tmp_path / "box" / "pushes" / f"p{i}.csv", cols)
+    _log_pushes(planar, tmp_path, Surface("surface", 0.3, 0.25))
     rec = read_pushes(tmp_path)
     (fit,) = estimate_all(rec, "fit", simulator=planar)
     (paper,) = estimate_all(rec, "paper")
