@@ -330,6 +330,20 @@ def test_engine_agreement_smoke(monkeypatch, capfd):
     assert figure(r"\| [\d.]+% \| {n}% \|", row) > 50
 
 
+def test_engine_agreement_steps_smoke(monkeypatch, capfd):
+    out = run_bench(
+        "engine_agreement.py",
+        *("--steps-ms", "1", "0.5", "--pushes", "6", "--engines", "pybullet"),
+        monkeypatch=monkeypatch,
+        capfd=capfd,
+    )
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("pybullet | ")]
+    assert {(r[1], r[2]) for r in rows} <= {(a, b) for a in ("1.000", "0.500")
+                                            for b in ("0.100", "1.000")}  # fmt: skip
+    assert {r[1] for r in rows} == {"1.000", "0.500"}
+    assert all(int(r[3]) >= 1 and 0.0 <= float(r[4]) < 1.0 for r in rows)
+
+
 def test_engine_agreement_tipping_smoke(monkeypatch, capfd):
     out = run_bench(
         "engine_agreement.py",
