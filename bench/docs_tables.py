@@ -317,9 +317,17 @@ def real(data: str) -> list[Path]:
                "median position change (mm)", "p90 position change (mm)"]  # fmt: skip
     written.append(write_table("real-replay-geometry", columns, rows, command, friction=friction))
     floor = friction_floor(planar, rec.objects, rec.pushes)
-    rows = []
+    s = summarise(replayed["planar", "recorded"])
+    rows = [[f"one pair for the surface: the fitted one ({friction})",
+             f"{s.sign_right} of {s.turning}", s.turn_error_median_pct,
+             s.position_error_median_mm, s.position_error_p90_mm]]  # fmt: skip
+    figures = [lambda s: s.turn_error_median_pct, lambda s: s.position_error_median_mm,
+               lambda s: s.position_error_p90_mm]  # fmt: skip
+    best = [f(floor.pairs[floor.best_pair(f)]) for f in figures]
+    right = max(floor.pairs.values(), key=lambda s: s.sign_right)
+    rows.append([f"one pair for the surface: each figure's best of the {len(floor.pairs)} pairs",
+                 f"{right.sign_right} of {right.turning}", *best])  # fmt: skip
     for label, replays in (
-        (f"one pair for the surface (fitted: {friction})", replayed["planar", "recorded"]),
         ("each push's own pair: its closest final position", floor.position),
         ("each push's own pair: its closest turn", floor.turn),
     ):
@@ -329,7 +337,9 @@ def real(data: str) -> list[Path]:
     columns = ["friction (planar, recorded path)", "turn sign right (> 2 deg)",
                "median turn error (% of the turn)", "median position error (mm)",
                "p90 position error (mm)"]  # fmt: skip
-    written.append(write_table("real-replay-floor", columns, rows, command, pairs=floor.pairs))
+    grid = {"mu_floor": sorted({f for f, _ in floor.pairs}),
+            "mu_pusher": sorted({p for _, p in floor.pairs})}  # fmt: skip
+    written.append(write_table("real-replay-floor", columns, rows, command, **grid))
     planar.close()
     forces = [contact_force(p, rec.objects[p.object_name]) for p in rec.pushes]
     readings = friction_by_speed([f for f in forces if f is not None])

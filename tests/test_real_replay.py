@@ -137,7 +137,10 @@ def test_the_friction_floor_finds_each_push_its_own_friction(planar, tmp_path):
     mu_floor, mu_pusher = (0.15, SURFACE.mu_floor), (SURFACE.mu_pusher, 0.1)
     floor = friction_floor(planar, rec.objects, rec.pushes, mu_floor=mu_floor,
                            mu_pusher=mu_pusher)  # fmt: skip
-    assert floor.pairs == 4 and len(floor.position) == len(floor.turn) == len(PUSHES)
+    assert len(floor.pairs) == 4 and len(floor.position) == len(floor.turn) == len(PUSHES)
+    true_pair = (SURFACE.mu_floor, SURFACE.mu_pusher)
+    assert floor.best_pair(lambda s: s.position_error_p90_mm) == true_pair
+    assert floor.pairs[true_pair].position_error_p90_mm < 1e-9
     assert all(r.position_error_mm < 1e-9 for r in floor.position)
     assert all(abs(r.turn_error_deg) < 1e-9 for r in floor.turn)
     other = replay_all(planar, rec.objects, rec.pushes, {"surface": Surface("surface", 0.15, 0.1)})
@@ -233,8 +236,8 @@ def test_replay_of_the_shared_pushes_on_planar(capsys):
 @pytest.mark.xfail(
     reason="measured 19.6% / 2.69 mm / p90 6.88 mm (goals 10% / 2 mm / 4 mm); with each "
     "object's CoM fitted 19.8% / 1.95 / 6.70: the recorded force shows the floor turning the "
-    "disc, which planar's even floor cannot; with each push its own friction the p90 stays "
-    "at 5.49 mm; docs/real_robot.md, 'What the replay shows'",
+    "disc, which planar's even floor cannot; no friction pair for the surface meets any of "
+    "the three (best 17.3% / 2.42 / 5.95 mm); docs/real_robot.md, 'What the replay shows'",
     strict=True,
 )
 def test_replay_goals_on_planar(capsys):
@@ -244,17 +247,22 @@ def test_replay_goals_on_planar(capsys):
 
 @needs_shared
 @pytest.mark.slow
-def test_no_friction_of_a_uniform_floor_meets_the_p90_goal():
-    """Each shared push replayed with its own best friction pair of the widened grid (100
-    pairs; ~1 min): the 90th percentile of the final position's error stays above the 4 mm
-    goal (measured 5.49 mm), so no friction for the surface can meet it on this model; the
-    medians, push by push, fall below theirs (measured 1.25 mm, 1.7% of the turn)."""
+def test_no_friction_of_a_uniform_floor_meets_the_replay_goals():
+    """The shared pushes replayed on every friction pair of the widened grid (100 pairs; ~1
+    min). One pair for the surface, the best for each figure alone stays above its goal
+    (measured 17.3% of the turn, 2.42 mm, p90 5.95 mm against 10%, 2 mm, 4 mm); with each
+    push its own best pair the p90 still does (5.49 mm), and only then do the medians fall
+    below theirs (1.25 mm, 1.7%)."""
     rec = read_pushes(SHARED)
     sim = make_simulator("planar")
     floor = friction_floor(sim, rec.objects, rec.pushes)
     sim.close()
+    assert len(floor.pairs) == 100 and all(s.failed == 0 for s in floor.pairs.values())
+    for figure, goal in ((lambda s: s.turn_error_median_pct, 10.0),
+                         (lambda s: s.position_error_median_mm, 2.0),
+                         (lambda s: s.position_error_p90_mm, 4.0)):  # fmt: skip
+        assert figure(floor.pairs[floor.best_pair(figure)]) > goal * 1.1
     by_position, by_turn = summarise(floor.position), summarise(floor.turn)
-    assert floor.pairs == 100 and by_position.failed == by_turn.failed == 0
     assert by_position.position_error_p90_mm > 5.0
     assert by_position.position_error_median_mm < 2.0 and by_turn.turn_error_median_pct < 10.0
 

@@ -391,15 +391,21 @@ def fit_surface(
 
 @dataclass(frozen=True)
 class FrictionFloor:
-    """Each push replayed with the friction pair of a grid that replays it best: by its final
-    position (`position`) and by its turn (`turn`). One pair for all of a surface's pushes
-    leaves each push's error at least its best here, so `summarise` of either is a floor: the
-    median and 90th percentile of no surface's fitted replay on this model (a uniform floor,
-    the recorded geometry and CoM) can be lower, over the grid's range (`pairs` pairs)."""
+    """Every push replayed on every friction pair of a grid. `pairs`: each pair's `summarise`,
+    one pair for all the pushes as a surface's friction is; the best of them for a figure is
+    the floor of that figure for any surface's friction on this model (a uniform floor, the
+    recorded geometry and CoM) over the grid's range. `position` and `turn`: each push with
+    the pair that replays it best, by its final position and by its turn: no friction for the
+    whole surface leaves a push closer than its best here, so `summarise` of either is a
+    floor even for a friction chosen push by push."""
 
+    pairs: dict[tuple[float, float], ReplaySummary]
     position: tuple[ReplayedPush, ...]
     turn: tuple[ReplayedPush, ...]
-    pairs: int
+
+    def best_pair(self, figure: Callable[[ReplaySummary], float]) -> tuple[float, float]:
+        """The grid's (floor, pusher) friction pair with the lowest `figure`."""
+        return min(self.pairs, key=lambda pair: figure(self.pairs[pair]))
 
 
 def friction_floor(
@@ -414,20 +420,21 @@ def friction_floor(
     """`FrictionFloor` of `pushes` over the grid `mu_floor` x `mu_pusher` (every push on every
     pair: the grid's size times a replay; a push no pair replays keeps its failed replay)."""
     names = {surface_of(p) for p in pushes}
-    grid = []
+    grid = {}
     for mf in mu_floor:
         for mp in mu_pusher:
             surfaces = {n: Surface(n, mf, mp) for n in names}
-            grid.append(replay_all(sim, objects, pushes, surfaces, path, backend))
+            grid[mf, mp] = replay_all(sim, objects, pushes, surfaces, path, backend)
+    replays = list(grid.values())
 
     def best(i: int, error: Callable[[ReplayedPush], float | None]) -> ReplayedPush:
-        ran = [g[i] for g in grid if error(g[i]) is not None]
-        return min(ran, key=lambda r: abs(error(r) or 0.0)) if ran else grid[0][i]
+        ran = [g[i] for g in replays if error(g[i]) is not None]
+        return min(ran, key=lambda r: abs(error(r) or 0.0)) if ran else replays[0][i]
 
     return FrictionFloor(
+        {pair: summarise(g) for pair, g in grid.items()},
         tuple(best(i, lambda r: r.position_error_mm) for i in range(len(pushes))),
         tuple(best(i, lambda r: r.turn_error_deg) for i in range(len(pushes))),
-        len(grid),
     )
 
 
