@@ -151,6 +151,7 @@ def claims(dbs: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
 
 
 # what pairs two estimators' episodes: the same scene under the same condition and physics
+NORMAL_PUSH_DEG = 5.0  # `--max-angle-deg` of the normal pushes (docs/real_robot.md)
 PAIR_KEY = ("backend", "physics", "floor", "speed_cm_s", "object", "com_index", "izz_scale")
 PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
 
@@ -223,7 +224,7 @@ def real(data: str) -> list[Path]:
     `comexp-real replay` (the friction fitted on planar, as the command does) on every backend,
     on the recorded pushes under `data`."""
     from comexp.experiment.config import make_simulator
-    from comexp.real.estimate import estimate_all
+    from comexp.real.estimate import estimate_all, usable_pushes
     from comexp.real.force import contact_force, friction_by_speed
     from comexp.real.logs import read_pushes
     from comexp.real.replay import (
@@ -255,6 +256,24 @@ def real(data: str) -> list[Path]:
     columns = ["estimator", "object", "pushes", "error (cm)", "paper region (cm2)",
                "region keeps the true CoM", "region misses it by (mm)"]  # fmt: skip
     written = [write_table("real-estimate", columns, rows, command)]
+    rows = []  # the normal pushes alone (docs/real_robot.md): the paper's region
+    for e in estimate_all(rec, "paper", max_angle_deg=NORMAL_PUSH_DEG):
+        # each normal push: how far its line passes from the true CoM, and whether the object
+        # turned the way the push's torque about the CoM says
+        obj, lines = rec.objects[e.object], []
+        for _, pc in usable_pushes(rec.of(e.object), obj, NORMAL_PUSH_DEG):
+            side = pc.line_offset_m(obj.true_com_m)
+            lines.append((abs(side), pc.turn_deg, side * pc.turn_deg > 0))
+        if not lines:
+            continue
+        nearest = min(lines)
+        rows.append([e.object, e.pushes, "yes" if e.paper_region_keeps_true_com else "no",
+                     e.paper_region_miss_mm, 1000 * nearest[0], nearest[1],
+                     "yes" if nearest[2] else "no"])  # fmt: skip
+    columns = ["object", "normal pushes", "region keeps the true CoM", "misses it by (mm)",
+               "nearest push line to the CoM (mm)", "its turn (deg)",
+               "turned as the CoM's side says"]  # fmt: skip
+    written.append(write_table("real-estimate-normal", columns, rows, command))
 
     surfaces = {}
     for name in sorted({surface_of(p) for p in rec.pushes}):

@@ -21,6 +21,7 @@ from comexp.real.fit import fit_com
 from comexp.real.logs import (
     make_object,
     make_push,
+    push_contact,
     read_pushes,
     write_plain_object,
     write_plain_push,
@@ -147,6 +148,18 @@ def test_the_friction_floor_finds_each_push_its_own_friction(planar, tmp_path):
     assert all(r.position_error_mm > 0.05 for r in other)  # the grid's pairs differ
     for r, f in zip(other, floor.position, strict=True):
         assert f.position_error_mm <= r.position_error_mm
+
+
+def test_a_push_turns_the_object_toward_its_line_offset(planar, tmp_path):
+    """`PushContact.line_offset_m`: pushes simulated on planar turn the box counter-clockwise
+    where the CoM lies left of the pusher's line (positive offset), clockwise where right."""
+    turns = _log_pushes(planar, tmp_path, SURFACE)
+    rec = read_pushes(tmp_path)
+    obj = rec.objects["box"]
+    offsets = [push_contact(p, obj).line_offset_m(obj.true_com_m) for p in rec.pushes]
+    assert len(offsets) == len(PUSHES) and min(offsets) < -0.005 and max(offsets) > 0.005
+    for offset, turn in zip(offsets, turns, strict=True):
+        assert abs(turn) < 1.0 if abs(offset) < 0.001 else offset * turn > 0
 
 
 def test_a_start_that_overlaps_the_outline_is_moved_out_along_the_normal(planar):

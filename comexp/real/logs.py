@@ -160,6 +160,16 @@ class PushContact:
     angle_to_normal_rad: float | None = None
     contact_gap_m: float | None = None
 
+    def line_offset_m(self, com_m: np.ndarray) -> float:
+        """How far `com_m` (object frame) lies left of the line the pusher travels along through
+        the contact (m; negative: right): the side the push's torque turns the object by,
+        counter-clockwise for a CoM on the left. Needs the contact (`moved`)."""
+        if self.contact_m is None or self.direction is None:
+            raise ValueError("a push that never moved its object has no contact line")
+        d = np.asarray(self.direction, dtype=float) / np.linalg.norm(self.direction)
+        r = np.asarray(com_m, dtype=float) - self.contact_m
+        return float(d[0] * r[1] - d[1] * r[0])
+
 
 # --- timestamps, poses, outlines ----------------------------------------------------------------
 
