@@ -177,12 +177,14 @@ def methods(
     name: str = "fit-methods",
     baseline: str = "motion",
     method: str | None = None,
+    floor: str | None = None,
 ) -> Path:
     """`fit-methods` (or `name`): each estimator's mean error per backend, physics and condition
     (floor, speed) over the databases' episodes, and its paired difference from `baseline` (an
     `estimator_label`) on the same episodes (mean and 95% interval); `method`: that method's
-    episodes only, every revision of it. Cost is episode_profile.py --estimators' (one
-    process, the same episodes alternating): a job's wall times depend on what else ran."""
+    episodes only, every revision of it; `floor`: that floor's episodes only. Cost is
+    episode_profile.py --estimators' (one process, the same episodes alternating): a job's
+    wall times depend on what else ran."""
     cols = ["status", "error_cm", "estimator", *PAIR_KEY]
     found: dict[tuple[str, str, str, float, str], dict[tuple, float]] = {}
     for url in dbs:
@@ -192,6 +194,8 @@ def methods(
                 if e is None:
                     continue
                 if method and json.loads(r["estimator"])["method"] != method:
+                    continue
+                if floor and r["floor"] != floor:
                     continue
                 label = estimator_label(r["estimator"])
                 cond = (r["backend"], r["physics"], r["floor"], float(r["speed_cm_s"]), label)
@@ -214,6 +218,7 @@ def methods(
     args = [f"--name {name}"]
     args += [f"--baseline '{baseline}'"] if baseline != "motion" else []
     args += [f"--method {method}"] if method else []
+    args += [f"--floor {floor}"] if floor else []
     args += [f"--db {d}" for d in dbs]
     command = "python bench/docs_tables.py methods " + " ".join(args)
     return write_table(name, columns, out, command)
@@ -383,13 +388,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     me.add_argument("--name", default="fit-methods", help="docs/data/NAME.json")
     me.add_argument("--baseline", default="motion", help="the estimator the others pair with")
     me.add_argument("--method", help="this method's episodes only (every revision)")
+    me.add_argument("--floor", choices=("iso", "aniso"), help="this floor's episodes only")
     rr = sub.add_parser("real", help="docs/real_robot.md's tables, from recorded pushes")
     rr.add_argument("--data", default="../shared/data/mit-push-train")
     args = ap.parse_args(argv)
     if args.command == "results":
         print(results(args.db))
     if args.command == "methods":
-        print(methods(args.db, args.name, args.baseline, args.method))
+        print(methods(args.db, args.name, args.baseline, args.method, args.floor))
     if args.command == "real":
         for path in real(args.data):
             print(path)

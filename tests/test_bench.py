@@ -649,7 +649,8 @@ def test_docs_tables_pairs_estimators_on_the_same_episodes(tmp_path, monkeypatch
 
 def test_docs_tables_pairs_a_model_with_its_previous_revision(tmp_path, monkeypatch):
     """`methods --baseline 'fit (REV)' --method fit`: an older revision of a pinned model is
-    labelled with it and pairs with today's on the same episodes; other methods are left out."""
+    labelled with it and pairs with today's on the same episodes; other methods are left out,
+    and with `--floor` other floors."""
     import common
     import docs_tables
     from test_db import make_result
@@ -666,14 +667,20 @@ def test_docs_tables_pairs_a_model_with_its_previous_revision(tmp_path, monkeypa
     rows = [make_result(com_index=i, error_cm=1.0, estimator=old) for i in range(3)]
     rows += [make_result(com_index=i, error_cm=0.8 + 0.01 * i, estimator=new) for i in range(3)]
     rows += [make_result(com_index=i, error_cm=2.0, estimator=motion) for i in range(3)]
+    aniso = dict(floor="aniso", mu_floor_x=1.0)
+    rows += [make_result(com_index=i, error_cm=3.0, estimator=new, **aniso) for i in range(2)]
     with ResultsDB(url) as db:
         db.add_results(None, rows)
-    path = docs_tables.methods([url], "rev", baseline="fit (fit-0+old)", method="fit")
+    path = docs_tables.methods([url], "rev", baseline="fit (fit-0+old)", method="fit", floor="iso")
     data = json.loads(path.read_text())
     by = {r[2]: r for r in data["rows"]}
-    assert set(by) == {"fit", "fit (fit-0+old)"}
+    assert set(by) == {"fit", "fit (fit-0+old)"} and {r[1] for r in data["rows"]} == {
+        "iso, 40 cm/s"
+    }
     assert by["fit"][5] == pytest.approx(-0.19) and by["fit (fit-0+old)"][5] is None
-    assert "--baseline 'fit (fit-0+old)' --method fit" in data["command"]
+    assert "--baseline 'fit (fit-0+old)' --method fit --floor iso" in data["command"]
+    rows = json.loads(docs_tables.methods([url], "rev", method="fit").read_text())["rows"]
+    assert [r[4] for r in rows if r[1] == "aniso, 40 cm/s"] == [3.0]  # no floor: every floor
 
 
 # --- whole commands --------------------------------------------------------------------------
