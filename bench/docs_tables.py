@@ -150,8 +150,8 @@ def claims(dbs: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
     return columns, out
 
 
-# what pairs two estimators' episodes: the same scene under the same condition and physics
 NORMAL_PUSH_DEG = 5.0  # `--max-angle-deg` of the normal pushes (docs/real_robot.md)
+# what pairs two estimators' episodes: the same scene under the same condition and physics
 PAIR_KEY = ("backend", "physics", "floor", "speed_cm_s", "object", "com_index", "izz_scale")
 PAIR_KEY += ("mu_floor_x", "mu_floor_y", "mu_pusher")
 
