@@ -162,8 +162,8 @@ class PushContact:
 
     def line_offset_m(self, com_m: np.ndarray) -> float:
         """How far `com_m` (object frame) lies left of the line the pusher travels along through
-        the contact (m; negative: right): the side the push's torque turns the object by,
-        counter-clockwise for a CoM on the left. Needs the contact (`moved`)."""
+        the contact (m; negative: right). Positive: the push's torque about `com_m` turns the
+        object counter-clockwise. Needs the contact (`moved`)."""
         if self.contact_m is None or self.direction is None:
             raise ValueError("a push that never moved its object has no contact line")
         d = np.asarray(self.direction, dtype=float) / np.linalg.norm(self.direction)

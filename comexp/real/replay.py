@@ -19,8 +19,9 @@ The friction of a surface is given (`Surface`), or fitted once for the surface o
 pushes (`fit_surface`: planar, the reference model, over a grid of floor and pusher
 friction), never per push. `summarise` puts the replay beside a do-nothing prediction (the
 object stays where it was), so a reader sees what the model adds. `friction_floor` bounds
-what any uniform floor can do: each push with the friction pair that replays it best, a
-figure no choice of friction for the whole surface can beat.
+what any friction can do on this model: every push replayed on every pair of a grid, the
+best pair for each figure, and each push with the pair that replays it best (figures no
+friction for the whole surface can beat).
 """
 
 from __future__ import annotations
