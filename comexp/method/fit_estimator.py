@@ -176,8 +176,7 @@ class FitEstimator(MotionEstimator):
         self.gains = np.asarray(fs.turn_gains, dtype=float)
         self.loglik = np.zeros((len(self.coarse), len(floors), len(self.mu_p), len(self.gains)))
         self.steps_used = 0
-        self._updates = 0  # of `loglik`: keys `_floor_evidence`'s cache
-        self._evidence: tuple[tuple[int, bytes], np.ndarray] | None = None
+        self._evidence: tuple[tuple[int, bytes], np.ndarray] | None = None  # `_floor_evidence`'s
         self._slow = False  # the last push was read with the quasi-static model
         self._travel_m = 0.0
         self._gaps: list[float] = []  # the pusher's gaps while driving (`PusherDrive.gaps_m`)
@@ -291,7 +290,6 @@ class FitEstimator(MotionEstimator):
             idx = np.flatnonzero(self.active)
             best = push_ll[:, idx].max()
             self.loglik += np.maximum(push_ll, best - fs.push_max_log)
-            self._updates += 1
         self.steps_used += len(steps)
         if fs.rollout:
             end = path.poses[-1] if path.extra.get("recentred") and path.poses else path.pose_after
@@ -454,7 +452,7 @@ class FitEstimator(MotionEstimator):
         or the active floors change (a push asks for it several times)."""
         from scipy.special import logsumexp
 
-        key = (self._updates, self.active.tobytes())
+        key = (self.steps_used, self.active.tobytes())  # `loglik` grows with every step read
         if self._evidence is None or self._evidence[0] != key:
             n = len(self.coarse)
             ev = np.full(len(self.active), -np.inf)
